@@ -1,0 +1,236 @@
+"""``wavegrasp up [RECORDING]``: run docker-compose.yml's services as local processes.
+
+Starts the services in dependency order (the router first), waits for each dependency's
+liveliness token where compose asks for ``service_healthy``, prefixes every log line with the
+service's name, and stops everything, in reverse order, when the service labelled
+``wavegrasp.ends-run`` (the player) finishes, when one crashes, or on Ctrl-C. Writes
+``OUT/run.mcap`` (through the recorder) and ``OUT/summary.json``. Exit code: 0 when the run
+completed, 1 when a service crashed, 2 for bad arguments, 130 after Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from wavegrasp.ops.compose import ComposeService, load_compose, start_order
+from wavegrasp.ops.sample import default_recording, project_root
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.schemas import PlayerStatus, ServiceStats
+
+STOP_TIMEOUT_S = 10.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def local_command(command: list[str]) -> list[str]:
+    """The compose command as a local process: ``wavegrasp ...`` runs this interpreter's."""
+    if command and command[0] == "wavegrasp":
+        return [sys.executable, "-m", "wavegrasp", *command[1:]]
+    return command
+
+
+class Launcher:
+    def __init__(self, services: dict[str, ComposeService], env: dict[str, str]) -> None:
+        self.services = services
+        self.env = env
+        self.order = start_order(services)
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.started: list[str] = []
+        self.bus: Bus | None = None
+        self.stats: dict[str, dict] = {}
+        self.player_status: dict = {}
+        self.interrupted = threading.Event()
+        self._pumps: list[threading.Thread] = []
+
+    def log(self, text: str) -> None:
+        print(f"{'up':>10} | {text}", flush=True)
+
+    def _pump(self, name: str, stream) -> None:
+        for raw in iter(stream.readline, b""):
+            sys.stdout.write(f"{name:>10} | {raw.decode(errors='replace').rstrip()}\n")
+            sys.stdout.flush()
+
+    def start(self, name: str) -> None:
+        svc = self.services[name]
+        env = {**os.environ, **self.env, **svc.environment, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(local_command(svc.command), env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        self.procs[name] = proc
+        self.started.append(name)
+        pump = threading.Thread(target=self._pump, args=(name, proc.stdout), daemon=True)
+        pump.start()
+        self._pumps.append(pump)
+
+    def connect(self) -> None:
+        settings = Settings.from_env("launcher", env=self.env, connect_timeout_s=20.0)
+        self.bus = Bus(settings)
+        self.bus.subscribe("wavegrasp/*/stats", self.on_stats, ServiceStats)
+        self.bus.subscribe("wavegrasp/player/status", self.on_status, PlayerStatus)
+
+    def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
+        self.stats[msg.service] = msg.model_dump(exclude={"header"})
+
+    def on_status(self, msg: PlayerStatus, _d: Delivery) -> None:
+        self.player_status = msg.model_dump(exclude={"header", "metadata"})
+
+    def pump_bus(self) -> None:
+        while self.bus is not None:
+            try:
+                self.bus.dispatch(self.bus.inbox.get_nowait())
+            except queue.Empty:
+                return
+
+    def crashed(self) -> list[str]:
+        return [n for n, p in self.procs.items() if p.poll() not in (None, 0)]
+
+    def wait_healthy(self, names: list[str], timeout_s: float = 30.0) -> bool:
+        assert self.bus is not None
+        deadline = time.monotonic() + timeout_s
+        missing = set(names)
+        while missing and time.monotonic() < deadline and not self.interrupted.is_set():
+            if self.crashed():
+                return False
+            missing = self.bus.wait_for_services(sorted(missing), 0.5)
+        if missing:
+            self.log(f"not healthy after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
+        return not missing
+
+    def bring_up(self) -> bool:
+        for name in self.order:
+            healthy = [d for d, c in self.services[name].depends_on.items()
+                       if c == "service_healthy"]
+            if self.bus is None and self.started:
+                self.connect()
+            if healthy and not self.wait_healthy(healthy):
+                return False
+            if self.interrupted.is_set():
+                return False
+            self.start(name)
+        if self.bus is None:
+            self.connect()
+        return True
+
+    def wait_end(self) -> str:
+        """Block until the run ends; returns why: finished, crashed or interrupted."""
+        enders = [n for n, s in self.services.items() if s.labels.get("wavegrasp.ends-run")]
+        while not self.interrupted.is_set():
+            self.pump_bus()
+            if self.crashed():
+                return "crashed"
+            if enders and all(self.procs[n].poll() == 0 for n in enders):
+                return "finished"
+            time.sleep(0.05)
+        return "interrupted"
+
+    def stop_all(self) -> None:
+        for name in reversed(self.started):
+            proc = self.procs[name]
+            if name == "router" and self.bus is not None:
+                self.pump_bus()
+                self.bus.close()
+                self.bus = None
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+                try:
+                    proc.wait(STOP_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    self.log(f"{name} did not stop in {STOP_TIMEOUT_S:.0f} s: killing it")
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait()
+            try:  # reap anything the service itself started
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+        for pump in self._pumps:
+            pump.join(timeout=2.0)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="wavegrasp up", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("recording", nargs="?", type=Path,
+                        help="MCAP, ROS 1 .bag or ROS 2 bag folder (default: the sample)")
+    parser.add_argument("--pace", choices=["realtime", "fast", "lockstep"], default="realtime")
+    parser.add_argument("--predictor", help="motion model for the predictor service")
+    parser.add_argument("--out", type=Path, help="run folder (default: runs/<date-time>)")
+    parser.add_argument("--compose", type=Path, help="compose file (default: docker-compose.yml)")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    root = project_root()
+    compose_path = args.compose or (Path.cwd() / "docker-compose.yml")
+    if not compose_path.exists():
+        compose_path = root / "docker-compose.yml"
+    out = (args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")).resolve()
+    if (out / "run.mcap").exists():
+        print(f"wavegrasp up: {out} already holds run.mcap: choose another --out",
+              file=sys.stderr)
+        return 2
+    recording = args.recording or default_recording()
+    if not recording.exists():
+        print(f"wavegrasp up: {recording}: no such recording", file=sys.stderr)
+        return 2
+    env = {
+        "WAVEGRASP_ROUTER_HOST": "127.0.0.1", "WAVEGRASP_ROUTER_BIND": "127.0.0.1",
+        "WAVEGRASP_ROUTER_PORT": str(free_port()),
+        **{k: v for k, v in os.environ.items() if k.startswith(("WAVEGRASP_", "ZENOH_"))},
+        "WAVEGRASP_RECORDING": str(recording.resolve()), "WAVEGRASP_OUT": str(out),
+        "WAVEGRASP_PACE": args.pace,
+    }
+    if args.predictor:
+        env["WAVEGRASP_PREDICTOR"] = args.predictor
+    env["ZENOH_CONNECT"] = f"tcp/127.0.0.1:{env['WAVEGRASP_ROUTER_PORT']}"
+    try:
+        services = load_compose(compose_path, env)
+    except ValueError as exc:
+        print(f"wavegrasp up: {exc}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    launcher = Launcher(services, env)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: launcher.interrupted.set())
+    started = time.time()
+    launcher.log(f"recording {recording} -> {out} ({args.pace})")
+    try:
+        why = launcher.wait_end() if launcher.bring_up() else "crashed"
+        if launcher.interrupted.is_set():
+            why = "interrupted"
+    finally:
+        crashed = launcher.crashed()
+        launcher.stop_all()
+    codes = {n: p.returncode for n, p in launcher.procs.items()}
+    summary = {
+        "recording": str(recording), "pace": args.pace, "out": str(out),
+        "ended": why, "crashed": crashed, "exit_codes": codes,
+        "duration_s": round(time.time() - started, 3), "player": launcher.player_status,
+        "bad_messages": {n: s["bad"] for n, s in launcher.stats.items() if s.get("bad")},
+        "services": launcher.stats,
+        "files": sorted(p.name for p in out.glob("run*.mcap")),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    bad = sum(sum(b.values()) for b in summary["bad_messages"].values())
+    launcher.log(f"{why}: {launcher.player_status.get('frames', 0)} frames, {bad} bad messages;"
+                 f" exit codes {codes}; wrote {out / 'summary.json'}")
+    if why == "interrupted":
+        return 130
+    return 1 if crashed or why == "crashed" else 0

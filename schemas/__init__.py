@@ -1,0 +1,98 @@
+"""Message contracts shared by every service: pydantic v2 models and the key tables.
+
+``MESSAGE_TYPES`` maps a schema name (sent as the zenoh encoding's schema) to its model;
+``KEY_TYPES`` maps each fixed key to the model it carries; ``ROS_KEYS`` maps the ROS topics that
+travel as CDR (zenoh-bridge-ros2dds mapping: topic ``/a/b`` on key ``a/b``) to their ROS 2 type.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+from wavegrasp.schemas.messages import (
+    ArmState,
+    CartesianSample,
+    Clock,
+    FrameAck,
+    GateDecision,
+    GraspOutcome,
+    GraspPlan,
+    Header,
+    Hop,
+    JointSample,
+    MotionPrediction,
+    ObjectObservation,
+    PlayerStatus,
+    Pose,
+    PredictionSample,
+    Quaternion,
+    ServiceStats,
+    Vec3,
+)
+
+MESSAGE_TYPES: dict[str, type[BaseModel]] = {
+    m.__name__: m
+    for m in (
+        ObjectObservation,
+        MotionPrediction,
+        GraspPlan,
+        GateDecision,
+        GraspOutcome,
+        ArmState,
+        Clock,
+        FrameAck,
+        PlayerStatus,
+        ServiceStats,
+    )
+}
+
+KEY_TYPES: dict[str, type[BaseModel]] = {
+    "wavegrasp/clock": Clock,
+    "wavegrasp/perception/object": ObjectObservation,
+    "wavegrasp/predictor/prediction": MotionPrediction,
+    "wavegrasp/planner/plan": GraspPlan,
+    "wavegrasp/gate/decision": GateDecision,
+    "wavegrasp/sim/arm_state": ArmState,
+    "wavegrasp/sim/outcome": GraspOutcome,
+    "wavegrasp/player/status": PlayerStatus,
+}
+
+ROS_KEYS: dict[str, str] = {
+    "trisect/points": "sensor_msgs/msg/PointCloud2",
+    "tf_static": "tf2_msgs/msg/TFMessage",
+    "groundtruth/object": "geometry_msgs/msg/PoseStamped",
+}
+
+
+def ack_key(service: str) -> str:
+    """Key on which ``service`` acknowledges finished camera frames (:class:`FrameAck`)."""
+    return f"wavegrasp/{service}/ack"
+
+
+def stats_key(service: str) -> str:
+    """Key on which ``service`` publishes its counters (:class:`ServiceStats`)."""
+    return f"wavegrasp/{service}/stats"
+
+
+def health_key(service: str) -> str:
+    """Liveliness token key held by a running ``service``."""
+    return f"wavegrasp/health/{service}"
+
+
+def model_for_key(key: str) -> type[BaseModel] | None:
+    """The model a ``wavegrasp/...`` key carries, or None if the key is not in the contract."""
+    if key in KEY_TYPES:
+        return KEY_TYPES[key]
+    parts = key.split("/")
+    if len(parts) == 3 and parts[0] == "wavegrasp":
+        return {"ack": FrameAck, "stats": ServiceStats}.get(parts[2])
+    return None
+
+
+__all__ = [
+    "ArmState", "CartesianSample", "Clock", "FrameAck", "GateDecision", "GraspOutcome",
+    "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
+    "MotionPrediction", "ObjectObservation", "PlayerStatus", "Pose", "PredictionSample",
+    "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key", "health_key", "model_for_key",
+    "stats_key",
+]

@@ -1,0 +1,195 @@
+"""The messages services exchange on ``wavegrasp/...`` keys (contract: ARCHITECTURE.md).
+
+All times are integers in nanoseconds. ``stamp_ns`` is on the recording's clock (the capture time
+of the camera frame a message derives from); hop times are wall-clock ``time.time_ns()``.
+Positions are metres in frame ``world`` (z up) unless a field says otherwise.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Message(BaseModel):
+    """Base of every message: unknown fields are kept, so newer senders stay readable."""
+
+    model_config = ConfigDict(extra="allow")
+
+
+class Hop(Message):
+    """One service's passage: when it received the input and when it sent its output."""
+
+    service: str
+    recv_ns: int = Field(description="wall clock, ns, when the input arrived")
+    sent_ns: int = Field(0, description="wall clock, ns, when the output left (0 until sent)")
+
+
+class Header(Message):
+    """Sequence, capture stamp, frame and the trace of every hop the data went through."""
+
+    seq: int = 0
+    stamp_ns: int = Field(0, description="recording clock, ns: capture time of the source frame")
+    frame_id: str = "world"
+    trace: list[Hop] = Field(default_factory=list)
+
+
+class Vec3(Message):
+    x: float
+    y: float
+    z: float
+
+
+class Quaternion(Message):
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    w: float = 1.0
+
+
+class Pose(Message):
+    position: Vec3
+    orientation: Quaternion = Field(default_factory=Quaternion)
+
+
+class ObjectObservation(Message):
+    """``wavegrasp/perception/object``: the tracked object's volume centroid in one frame.
+
+    ``centroid`` is None when the frame holds no usable observation; ``reason`` then says why.
+    """
+
+    header: Header
+    centroid: Vec3 | None = None
+    points_used: int = 0
+    quality: float = Field(0.0, ge=0.0, le=1.0, description="0 = unusable, 1 = best")
+    sigma_m: float | None = Field(None, description="1-sigma centroid uncertainty, metres")
+    reason: str | None = None
+
+
+class PredictionSample(Message):
+    t_ns: int = Field(description="recording clock, ns")
+    x: float
+    y: float
+    z: float
+    sigma: float = Field(description="1-sigma position error expected at t_ns, metres")
+
+
+class MotionPrediction(Message):
+    """``wavegrasp/predictor/prediction``: samples from now to at least one period ahead."""
+
+    header: Header
+    model: str
+    period_s: float
+    samples: list[PredictionSample]
+    parameters: dict[str, float] = Field(default_factory=dict)
+    warm: bool = Field(True, description="False while the model is still warming up")
+
+
+class JointSample(Message):
+    t_ns: int
+    positions: list[float] = Field(description="radians (revolute), metres (jaw)")
+    velocities: list[float] = Field(default_factory=list)
+
+
+class CartesianSample(Message):
+    t_ns: int
+    x: float
+    y: float
+    z: float
+
+
+class GraspPlan(Message):
+    """``wavegrasp/planner/plan``: a grasp at ``t_grasp_ns`` and the timed path to reach it."""
+
+    header: Header
+    plan_id: str
+    t_start_ns: int
+    t_grasp_ns: int
+    grasp: Pose
+    approach: Vec3 = Field(description="unit approach direction, world")
+    joint_names: list[str] = Field(default_factory=list)
+    joint_trajectory: list[JointSample] = Field(default_factory=list)
+    cartesian_path: list[CartesianSample] = Field(default_factory=list)
+    confidence: float = 0.0
+
+
+class GateDecision(Message):
+    """``wavegrasp/gate/decision``: go only while recent prediction error stays within bounds."""
+
+    header: Header
+    plan_id: str
+    go: bool
+    mean_error_m: float | None
+    threshold_m: float
+    window_s: float
+    reason: str = ""
+
+
+FailureKind = Literal["prediction", "collision", "timing", "abrupt_change", "unreachable", "other"]
+
+
+class GraspOutcome(Message):
+    """``wavegrasp/sim/outcome``: one attempt's result and the evidence that decided it."""
+
+    header: Header
+    plan_id: str
+    trial: int
+    attempt: int
+    success: bool
+    failure: FailureKind | None = None
+    evidence: dict[str, float | str | bool] = Field(default_factory=dict)
+
+
+class ArmState(Message):
+    """``wavegrasp/sim/arm_state``: the arm's joints and jaw, from the sim or an arm driver."""
+
+    header: Header
+    joint_names: list[str]
+    positions: list[float]
+    velocities: list[float] = Field(default_factory=list)
+    jaw_opening_m: float = 0.0
+    executing_plan_id: str | None = None
+
+
+class Clock(Message):
+    """``wavegrasp/clock``: the recording's time, published by the player."""
+
+    header: Header
+    rate: float = Field(1.0, description="recording seconds per wall second; 0 = as fast")
+
+
+class FrameAck(Message):
+    """``wavegrasp/<service>/ack``: the service has finished camera frame ``frame_seq``.
+
+    The player waits for it in lockstep pacing (and for the last frame in every pacing).
+    """
+
+    header: Header
+    service: str
+    frame_seq: int
+
+
+class PlayerStatus(Message):
+    """``wavegrasp/player/status``: what the player is replaying and how far it got."""
+
+    header: Header
+    state: Literal["starting", "playing", "finished", "failed"]
+    recording: str
+    pace: str
+    frames: int = 0
+    messages: int = 0
+    metadata: dict[str, str] = Field(default_factory=dict)
+    error: str | None = None
+
+
+class ServiceStats(Message):
+    """``wavegrasp/<service>/stats``: counters every service publishes each second and at exit."""
+
+    header: Header
+    service: str
+    subscriptions: list[str] = Field(default_factory=list)
+    received: dict[str, int] = Field(default_factory=dict)
+    bad: dict[str, int] = Field(default_factory=dict)
+    last_bad_reason: dict[str, str] = Field(default_factory=dict)
+    uptime_s: float = 0.0

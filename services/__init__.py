@@ -1,0 +1,1 @@
+"""wavegrasp: motion-aware underwater grasping over Eclipse Zenoh."""

@@ -1,0 +1,5 @@
+import sys
+
+from wavegrasp.cli import main
+
+sys.exit(main())

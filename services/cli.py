@@ -1,0 +1,33 @@
+"""The ``wavegrasp`` command: one sub-command per service, plus the tools around them."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    "up": ("wavegrasp.ops.launcher", "run docker-compose.yml's services locally on a recording"),
+    "router": ("wavegrasp.router.main", "the zenoh router the services connect to"),
+    "player": ("wavegrasp.player.main", "replay a recording (MCAP, ROS 1 bag, ROS 2 bag)"),
+    "recorder": ("wavegrasp.recorder.main", "record every message on the bus to run.mcap"),
+    "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
+}
+
+
+def usage() -> str:
+    lines = ["usage: wavegrasp COMMAND [ARGS]", "", "commands:"]
+    lines += [f"  {name:10s} {help_}" for name, (_, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"wavegrasp: unknown command {name!r}\n\n{usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    return int(module.main(rest) or 0)

@@ -1,0 +1,159 @@
+"""``wavegrasp player RECORDING``: replay a recording over the bus.
+
+Reads MCAP (ROS 2 profile), ROS 1 ``.bag`` files and ROS 2 bag folders and publishes
+``/trisect/points``, ``/tf_static`` and ``/groundtruth/object`` on keys ``trisect/points``,
+``tf_static`` and ``groundtruth/object`` with their CDR bytes unchanged and an attachment
+(sequence, source timestamp, log time), and the recording's time on ``wavegrasp/clock``.
+
+Pacing: ``realtime`` keeps the recording's rate; ``fast`` goes as fast as the bus takes it;
+``lockstep`` waits after each camera frame until ``wavegrasp/<ack_service>/ack`` acknowledges it,
+so a run is deterministic. In every pacing the player waits at the end for the last frame's
+acknowledgement (bounded by ``ack_timeout_s``) so nothing is cut off when the run stops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+
+from wavegrasp.recording_io.reader import Recording, RecordingError, open_recording
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import new_header
+from wavegrasp.schemas import Clock, FrameAck, PlayerStatus, ack_key
+
+log = logging.getLogger("wavegrasp.player")
+POINTS_TOPIC = "/trisect/points"
+Pace = Literal["realtime", "fast", "lockstep"]
+
+
+class PlayerSettings(Settings):
+    pace: Pace = "realtime"
+    ack_service: str = Field("recorder", description="whose FrameAck ends a frame in lockstep")
+    ack_timeout_s: float = Field(30.0, gt=0)
+    wait_for: list[str] = Field(default_factory=list,
+                                description="services whose liveliness to await before playing")
+    wait_timeout_s: float = Field(30.0, gt=0)
+
+
+class Player(Service):
+    def __init__(self, settings: PlayerSettings, recording: Recording,
+                 bus: Bus | None = None) -> None:
+        super().__init__(settings, bus)
+        self.cfg = settings
+        self.recording = recording
+        self.frames = 0
+        self.messages = 0
+        self.acked_seq = -1
+        self._clock_seq = 0
+        self._last_clock_ns: int | None = None
+        self.bus.subscribe(ack_key(settings.ack_service), self.on_ack, FrameAck)
+
+    def on_ack(self, msg: FrameAck, _d: Delivery) -> None:
+        self.acked_seq = max(self.acked_seq, msg.frame_seq)
+
+    def status(self, state: str, error: str | None = None) -> None:
+        self.bus.publish("wavegrasp/player/status", PlayerStatus(
+            header=new_header(self.name, self.frames, self._last_clock_ns or 0),
+            state=state, recording=str(self.recording.path), pace=self.cfg.pace,
+            frames=self.frames, messages=self.messages, metadata=self.recording.metadata,
+            error=error))
+
+    def publish_clock(self, stamp_ns: int) -> None:
+        if self._last_clock_ns is not None and stamp_ns <= self._last_clock_ns:
+            return
+        self._last_clock_ns = stamp_ns
+        self._clock_seq += 1
+        rate = {"realtime": 1.0, "fast": 0.0, "lockstep": 0.0}[self.cfg.pace]
+        self.bus.publish("wavegrasp/clock", Clock(
+            header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate))
+
+    def wait_for_ack(self, seq: int, timeout_s: float) -> bool:
+        """Serve the loop until frame ``seq`` is acknowledged; False on timeout or stop."""
+        deadline = time.monotonic() + timeout_s
+        while self.acked_seq < seq and not self.stopping.is_set():
+            if time.monotonic() > deadline:
+                return False
+            self.step(0.01)
+        return self.acked_seq >= seq
+
+    def play(self) -> int:
+        """Publish every message of the recording with the chosen pacing; returns exit code."""
+        cfg = self.cfg
+        if cfg.wait_for:
+            missing = self.bus.wait_for_services(cfg.wait_for, cfg.wait_timeout_s)
+            if missing:
+                log.error("services not alive after %.0f s: %s", cfg.wait_timeout_s,
+                          ", ".join(sorted(missing)))
+                return 3
+        self.status("playing")
+        first_ns: int | None = None
+        start = time.monotonic()
+        last_seq = -1
+        for msg in self.recording.messages():
+            if self.stopping.is_set():
+                break
+            if first_ns is None:
+                first_ns = msg.log_time_ns
+            if cfg.pace == "realtime":
+                due = start + (msg.log_time_ns - first_ns) / 1e9
+                while (wait := due - time.monotonic()) > 0 and not self.stopping.is_set():
+                    self.step(min(wait, 0.05))
+            else:
+                self.drain()
+            self.publish_clock(msg.log_time_ns)
+            seq = self.bus.publish_cdr(msg.topic.lstrip("/"), msg.cdr, msg.msgtype,
+                                       msg.log_time_ns)
+            self.messages += 1
+            if msg.topic == POINTS_TOPIC:
+                self.frames += 1
+                last_seq = seq
+                if cfg.pace == "lockstep" and not self.wait_for_ack(seq, cfg.ack_timeout_s):
+                    if self.stopping.is_set():
+                        break
+                    log.error("frame %d not acknowledged by %s within %.0f s", seq,
+                              cfg.ack_service, cfg.ack_timeout_s)
+                    self.status("failed", f"frame {seq} not acknowledged")
+                    return 4
+        if last_seq >= 0 and not self.stopping.is_set() and not self.wait_for_ack(
+                last_seq, cfg.ack_timeout_s):
+            log.warning("last frame %d not acknowledged by %s", last_seq, cfg.ack_service)
+        self.status("finished")
+        log.info("played %d messages, %d camera frames from %s in %.1f s", self.messages,
+                 self.frames, self.recording.path, time.monotonic() - start)
+        return 0
+
+    def serve(self) -> int:
+        try:
+            return self.play()
+        except RecordingError as exc:
+            self.status("failed", str(exc))
+            print(f"wavegrasp player: {exc}", file=sys.stderr)
+            return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="wavegrasp player", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("recording", type=Path, help="MCAP file, ROS 1 .bag or ROS 2 bag folder")
+    parser.add_argument("--pace", choices=["realtime", "fast", "lockstep"],
+                        help="default: WAVEGRASP_PACE or realtime")
+    parser.add_argument("--wait-for", help="services to await, comma-separated")
+    args = parser.parse_args(argv)
+    try:
+        settings = PlayerSettings.from_env(
+            "player", pace=args.pace,
+            wait_for=args.wait_for.split(",") if args.wait_for else None)
+        recording = open_recording(args.recording)
+    except (ValueError, RecordingError) as exc:
+        print(f"wavegrasp player: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return Player(settings, recording).run()

@@ -1,0 +1,163 @@
+"""``wavegrasp recorder``: subscribes to everything and writes ``OUT/run.mcap``.
+
+CDR keys become ROS 2 channels (topic ``/a/b`` for key ``a/b``, ``ros2msg`` schema), so a run is
+itself a recording the player can replay; JSON keys become ``json`` channels with the model's
+JSON Schema. log_time is on the recording's clock (the CDR attachment's log time, else the
+latest ``wavegrasp/clock``), so the run lines up with its input. The file is flushed every
+``flush_period_s``: a killed recorder loses at most that much. After each camera frame is
+written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's lockstep).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from mcap.writer import CompressionType, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from wavegrasp.recording_io.writer import ros2_msgdef
+from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import CdrAttachment, derived_header
+from wavegrasp.schemas import (
+    MESSAGE_TYPES,
+    ROS_KEYS,
+    FrameAck,
+    Header,
+    PlayerStatus,
+    ack_key,
+    model_for_key,
+)
+from wavegrasp.schemas.export import schema_text
+
+log = logging.getLogger("wavegrasp.recorder")
+POINTS_KEY = "trisect/points"
+
+
+class RecorderSettings(Settings):
+    out: Path = Path("out")
+    flush_period_s: float = 0.5
+
+
+def free_run_path(out: Path) -> Path:
+    """``out/run.mcap``, or ``run-1.mcap``, ``run-2.mcap`` ... if a run is already there."""
+    path, n = out / "run.mcap", 0
+    while path.exists():
+        n += 1
+        path = out / f"run-{n}.mcap"
+    return path
+
+
+class Recorder(Service):
+    def __init__(self, settings: RecorderSettings, bus: Bus | None = None) -> None:
+        super().__init__(settings, bus)
+        settings.out.mkdir(parents=True, exist_ok=True)
+        self.path = free_run_path(settings.out)
+        self.flush_period_s = settings.flush_period_s
+        self._file = self.path.open("wb")
+        self.writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self.writer.start(profile="ros2", library="wavegrasp recorder")
+        self._schemas: dict[tuple[str, str], int] = {}
+        self._channels: dict[str, int] = {}
+        self._typestore = get_typestore(Stores.ROS2_HUMBLE)
+        self._last_flush = time.monotonic()
+        self._wrote_metadata = False
+        self.frames = 0
+        self.written = 0
+        self.bus.subscribe("**", self.on_message)
+        log.info("recording to %s", self.path)
+
+    def _channel(self, topic: str, encoding: str, schema_name: str, schema_encoding: str,
+                 schema_data: str) -> int:
+        channel = self._channels.get(topic)
+        if channel is None:
+            key = (schema_name, schema_encoding)
+            if key not in self._schemas:
+                self._schemas[key] = self.writer.register_schema(
+                    schema_name, schema_encoding, schema_data.encode())
+            channel = self.writer.register_channel(topic, encoding, self._schemas[key])
+            self._channels[topic] = channel
+        return channel
+
+    def on_message(self, d: Delivery) -> None:
+        kind = d.encoding.split(";")[0]
+        if kind == CDR or (d.key in ROS_KEYS and kind != JSON):
+            self._record_cdr(d)
+        else:
+            self._record_json(d)
+
+    def _record_cdr(self, d: Delivery) -> None:
+        msgtype = d.schema or ROS_KEYS.get(d.key)
+        if msgtype is None:
+            raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
+        try:
+            att = CdrAttachment.decode(d.attachment)
+            self._typestore.deserialize_cdr(d.payload, msgtype)
+            msgdef = ros2_msgdef(msgtype)
+        except Exception as exc:  # rosbags raises many types on garbage
+            raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
+        log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
+        channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", msgdef)
+        self.writer.add_message(channel, log_time, d.payload, log_time,
+                                sequence=(att.seq if att else 0) & 0xFFFFFFFF)
+        self.written += 1
+        if d.key == POINTS_KEY and att is not None:
+            self.frames += 1
+            self._flush_if_due()
+            self.bus.publish(ack_key(self.name), FrameAck(
+                header=derived_header(Header(seq=att.seq, stamp_ns=log_time), self.name,
+                                      d.recv_ns), service=self.name, frame_seq=att.seq))
+
+    def _record_json(self, d: Delivery) -> None:
+        model = MESSAGE_TYPES.get(d.schema or "") or model_for_key(d.key)
+        if model is None:
+            raise BadMessage(f"{d.key}: no message type known for this key "
+                             f"(encoding {d.encoding!r})")
+        msg = decode_model(d, model)
+        if isinstance(msg, PlayerStatus) and msg.metadata and not self._wrote_metadata:
+            self.writer.add_metadata("wavegrasp.recording", msg.metadata)
+            self._wrote_metadata = True
+        header = getattr(msg, "header", None)
+        log_time = self.clock.now_ns()
+        publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
+        channel = self._channel(d.key, "json", model.__name__, "jsonschema",
+                                schema_text(model.__name__))
+        self.writer.add_message(channel, log_time, d.payload, publish_time)
+        self.written += 1
+
+    def _flush_if_due(self) -> None:
+        if time.monotonic() - self._last_flush >= self.flush_period_s:
+            self.writer.flush()
+            self._file.flush()
+            self._last_flush = time.monotonic()
+
+    def on_tick(self) -> None:
+        self._flush_if_due()
+
+    def on_stop(self) -> None:
+        self.writer.add_metadata("wavegrasp.run", {
+            "frames": str(self.frames), "messages": str(self.written),
+            "bad": json.dumps(dict(self.bus.bad))})
+        self.writer.finish()
+        self._file.close()
+        log.info("wrote %d messages (%d camera frames) to %s", self.written, self.frames,
+                 self.path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="wavegrasp recorder", description=__doc__)
+    parser.add_argument("--out", type=Path, help="output folder (default: WAVEGRASP_OUT or out)")
+    args = parser.parse_args(argv)
+    try:
+        settings = RecorderSettings.from_env("recorder", out=args.out)
+    except ValueError as exc:
+        print(f"wavegrasp recorder: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return Recorder(settings).run()

@@ -1,0 +1,228 @@
+"""A typed bus over Eclipse Zenoh: pydantic messages as JSON, ROS messages as raw CDR.
+
+Zenoh delivers samples on its own threads; the bus only copies each one into the service's
+inbox there, and :meth:`Bus.dispatch` decodes and handles it on the service's own loop. A
+payload that fails to decode, or whose handler raises, is counted and logged under its key and
+never stops the service.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+from pydantic import BaseModel, ValidationError
+
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import CdrAttachment, publisher_gid, stamp_sent
+from wavegrasp.schemas import health_key
+
+log = logging.getLogger(__name__)
+
+JSON = "application/json"
+CDR = "application/cdr"
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One sample as it arrived: key, raw payload, encoding text, attachment, wall recv time."""
+
+    key: str
+    payload: bytes
+    encoding: str
+    attachment: bytes | None
+    recv_ns: int
+    route: int
+
+    @property
+    def schema(self) -> str | None:
+        """The schema named in the encoding (``application/json;NAME``), if any."""
+        _, sep, schema = self.encoding.partition(";")
+        return schema or None if sep else None
+
+
+class BadMessage(ValueError):
+    """A payload that cannot be used; the text says what is wrong with it."""
+
+
+def zenoh_config(settings: Settings) -> zenoh.Config:
+    """Zenoh config with explicit endpoints, multicast scouting and shared memory off."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
+    if settings.zenoh_mode != "router":
+        conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
+    conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    # Shared memory would leave segments in /dev/shm when a process is killed.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    return conf
+
+
+def open_session(settings: Settings) -> zenoh.Session:
+    """Open a session, retrying until ``connect_timeout_s`` while the router comes up."""
+    deadline = time.monotonic() + settings.connect_timeout_s
+    while True:
+        try:
+            return zenoh.open(zenoh_config(settings))
+        except zenoh.ZError as exc:
+            if settings.zenoh_mode == "router" or time.monotonic() > deadline:
+                where = settings.zenoh_listen if settings.zenoh_mode == "router" else (
+                    settings.zenoh_connect)
+                raise ConnectionError(f"{settings.service}: cannot open zenoh session on "
+                                      f"{', '.join(where)}: {exc}") from None
+            time.sleep(0.2)
+
+
+class Bus:
+    """A service's zenoh session: typed publish/subscribe, liveliness, per-key counters."""
+
+    def __init__(self, settings: Settings, session: zenoh.Session | None = None) -> None:
+        self.service = settings.service
+        self.session = session if session is not None else open_session(settings)
+        self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
+        self.received: Counter[str] = Counter()
+        self.bad: Counter[str] = Counter()
+        self.last_bad_reason: dict[str, str] = {}
+        self.subscriptions: list[str] = []
+        self._routes: list[Callable[[Delivery], None]] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._seq: Counter[str] = Counter()
+        self._keep: list[Any] = []  # subscribers and tokens live as long as the bus
+        self._lock = threading.Lock()
+
+    # -- publishing ---------------------------------------------------------------------------
+    def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._publishers[key] = pub
+        return pub
+
+    def publish(self, key: str, msg: BaseModel) -> None:
+        """Publish ``msg`` as JSON on ``key``, stamping this service's hop as sent."""
+        header = getattr(msg, "header", None)
+        if header is not None:
+            stamp_sent(header, self.service)
+        encoding = zenoh.Encoding(f"{JSON};{type(msg).__name__}")
+        self._publisher(key, encoding).put(msg.model_dump_json().encode())
+
+    def publish_cdr(self, key: str, cdr: bytes, msgtype: str, log_time_ns: int = 0) -> int:
+        """Publish CDR bytes unchanged on ``key`` with an attachment; returns its sequence."""
+        with self._lock:
+            seq = self._seq[key]
+            self._seq[key] += 1
+        att = CdrAttachment(seq, time.time_ns(), publisher_gid(self.service, key), log_time_ns)
+        self._publisher(key, zenoh.Encoding(f"{CDR};{msgtype}")).put(
+            bytes(cdr), attachment=att.encode())
+        return seq
+
+    def publish_bytes(self, key: str, payload: bytes, encoding: str = JSON) -> None:
+        """Publish raw bytes (tools and fault injection); services use the typed calls."""
+        self.session.put(key, payload, encoding=zenoh.Encoding(encoding),
+                         congestion_control=zenoh.CongestionControl.BLOCK)
+
+    # -- subscribing --------------------------------------------------------------------------
+    def subscribe(self, key: str, handler: Callable[..., None],
+                  model: type[BaseModel] | None = None) -> None:
+        """Call ``handler`` on the service loop for every sample on ``key``.
+
+        With ``model``, the handler gets ``(msg, delivery)`` with the decoded model; without,
+        it gets ``(delivery)`` and raises :class:`BadMessage` (or ValueError) on bad input.
+        """
+        if model is None:
+            route = handler
+        else:
+            def route(d: Delivery) -> None:
+                handler(decode_model(d, model), d)
+        with self._lock:
+            index = len(self._routes)
+            self._routes.append(route)
+        self.subscriptions.append(key)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            att = sample.attachment
+            self.inbox.put(Delivery(
+                key=str(sample.key_expr), payload=sample.payload.to_bytes(),
+                encoding=str(sample.encoding), attachment=None if att is None else att.to_bytes(),
+                recv_ns=time.time_ns(), route=index))
+
+        self._keep.append(self.session.declare_subscriber(key, on_sample))
+
+    def dispatch(self, delivery: Delivery) -> bool:
+        """Decode and handle one delivery; count it; False if it was bad."""
+        self.received[delivery.key] += 1
+        try:
+            self._routes[delivery.route](delivery)
+            return True
+        except (BadMessage, ValueError, ValidationError) as exc:
+            self.count_bad(delivery.key, str(exc).splitlines()[0][:300])
+        except Exception as exc:  # a handler bug must not kill the service either
+            log.exception("%s: handler failed on %s", self.service, delivery.key)
+            self.count_bad(delivery.key, f"{type(exc).__name__}: {exc}"[:300])
+        return False
+
+    def count_bad(self, key: str, reason: str) -> None:
+        self.bad[key] += 1
+        self.last_bad_reason[key] = reason
+        log.warning("%s: bad message on %s (%d so far): %s", self.service, key, self.bad[key],
+                    reason)
+
+    # -- health -------------------------------------------------------------------------------
+    def declare_alive(self) -> None:
+        """Hold the liveliness token ``wavegrasp/health/<service>`` until the bus closes."""
+        self._keep.append(self.session.liveliness().declare_token(health_key(self.service)))
+
+    def alive_services(self, timeout_s: float = 1.0) -> set[str]:
+        """Names of services whose liveliness token is visible now."""
+        replies = self.session.liveliness().get(health_key("*"), timeout=timeout_s)
+        names = set()
+        for reply in replies:
+            if reply.ok is not None:
+                names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return names
+
+    def wait_for_services(self, names: list[str], timeout_s: float) -> set[str]:
+        """Wait until every service in ``names`` is alive; returns those still missing."""
+        deadline = time.monotonic() + timeout_s
+        missing = set(names)
+        while missing and time.monotonic() < deadline:
+            missing -= self.alive_services(timeout_s=min(1.0, timeout_s))
+            if missing:
+                time.sleep(0.05)
+        return missing
+
+    def close(self) -> None:
+        for item in reversed(self._keep):
+            try:
+                item.undeclare()
+            except zenoh.ZError:
+                pass
+        self._keep.clear()
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except zenoh.ZError:
+                pass
+        self._publishers.clear()
+        self.session.close()
+
+
+def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:
+    """Decode a JSON payload as ``model``; raises :class:`BadMessage` naming key and problem."""
+    if delivery.encoding.split(";")[0] not in (JSON, "text/json", "zenoh/bytes"):
+        raise BadMessage(f"{delivery.key}: encoding {delivery.encoding!r}, expected {JSON}")
+    try:
+        return model.model_validate_json(delivery.payload)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "payload"
+        raise BadMessage(f"{delivery.key}: {model.__name__}.{where}: {err['msg']}") from None

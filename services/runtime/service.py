@@ -1,0 +1,120 @@
+"""The service skeleton every ``wavegrasp <service>`` shares: bus, loop, health, stats, signals.
+
+A service subclasses :class:`Service`, subscribes in ``__init__`` and does its work in handlers
+and ``on_tick``; all of them run on one thread, the service loop, so they need no locks. Tests
+can call handlers directly or run the loop over a real zenoh session.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+
+from wavegrasp.runtime.bus import Bus
+from wavegrasp.runtime.clock import RecordingClock
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import new_header
+from wavegrasp.schemas import Clock, ServiceStats, stats_key
+
+log = logging.getLogger(__name__)
+
+
+def setup_logging(level: str = "INFO") -> None:
+    """One line per record on stderr; the launcher prefixes each line with the service name."""
+    logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s",
+                        force=True)
+
+
+class Service:
+    """Base of all services. ``run()`` blocks until SIGINT/SIGTERM or :meth:`stop`."""
+
+    tick_period_s = 0.05
+
+    def __init__(self, settings: Settings, bus: Bus | None = None) -> None:
+        self.settings = settings
+        self.name = settings.service
+        self.bus = bus if bus is not None else Bus(settings)
+        self.clock = RecordingClock()
+        self.stopping = threading.Event()
+        self.exit_code = 0
+        self._started = time.monotonic()
+        self._next_stats = 0.0
+        self._stats_seq = 0
+        self.bus.subscribe("wavegrasp/clock", self.on_clock, Clock)
+
+    def on_clock(self, msg: Clock, _delivery: object) -> None:
+        self.clock.on_clock(msg)
+
+    # hooks for subclasses
+    def on_start(self) -> None:
+        """Called on the loop before the first message, after the liveliness token is up."""
+
+    def on_tick(self) -> None:
+        """Called on the loop at least every ``tick_period_s``."""
+
+    def on_stop(self) -> None:
+        """Called on the loop after the inbox is drained, before the bus closes."""
+
+    def stop(self, code: int = 0) -> None:
+        self.exit_code = self.exit_code or code
+        self.stopping.set()
+
+    def publish_stats(self) -> None:
+        b = self.bus
+        self._stats_seq += 1
+        self.bus.publish(stats_key(self.name), ServiceStats(
+            header=new_header(self.name, self._stats_seq, self.clock.now_ns()),
+            service=self.name, subscriptions=list(b.subscriptions), received=dict(b.received),
+            bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason),
+            uptime_s=time.monotonic() - self._started))
+
+    def drain(self, max_items: int | None = None) -> int:
+        """Handle what is in the inbox now (at most ``max_items``); returns how many."""
+        n = 0
+        while max_items is None or n < max_items:
+            try:
+                delivery = self.bus.inbox.get_nowait()
+            except queue.Empty:
+                break
+            self.bus.dispatch(delivery)
+            n += 1
+        return n
+
+    def step(self, timeout_s: float) -> None:
+        """One turn of the loop: wait up to ``timeout_s`` for input, handle it, tick."""
+        try:
+            delivery = self.bus.inbox.get(timeout=timeout_s)
+            self.bus.dispatch(delivery)
+            self.drain(max_items=256)
+        except queue.Empty:
+            pass
+        self.on_tick()
+        now = time.monotonic()
+        if now >= self._next_stats:
+            self._next_stats = now + self.settings.stats_period_s
+            self.publish_stats()
+
+    def serve(self) -> int:
+        """The service's main loop; returns an exit code. Sources (the player) override it."""
+        while not self.stopping.is_set():
+            self.step(self.tick_period_s)
+        return self.exit_code
+
+    def run(self) -> int:
+        """Serve until stopped; returns the process exit code."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stopping.set())
+        try:
+            self.bus.declare_alive()
+            self.on_start()
+            self.exit_code = self.serve()
+            self.drain()
+            self.on_stop()
+            self.publish_stats()
+        finally:
+            self.bus.close()
+        log.info("%s stopped (exit %d)", self.name, self.exit_code)
+        return self.exit_code

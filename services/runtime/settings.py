@@ -1,0 +1,66 @@
+"""Settings from environment variables, the way compose and the launcher pass them.
+
+Zenoh endpoints come from ``ZENOH_CONNECT`` / ``ZENOH_LISTEN`` (comma-separated, e.g.
+``tcp/router:7447``); every other field ``f`` of a settings model comes from ``WAVEGRASP_F``.
+Command-line options given to a service override the environment.
+"""
+
+from __future__ import annotations
+
+import os
+import typing
+from collections.abc import Mapping
+from typing import Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+S = TypeVar("S", bound="Settings")
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+def split_endpoints(text: str) -> list[str]:
+    """``"tcp/a:1, tcp/b:2"`` -> ``["tcp/a:1", "tcp/b:2"]``."""
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+class Settings(BaseModel):
+    """What every service needs: its name, how to reach the bus, and how chatty to be."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    service: str
+    zenoh_connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER])
+    zenoh_listen: list[str] = Field(default_factory=list)
+    zenoh_mode: Literal["client", "peer", "router"] = "client"
+    log_level: str = "INFO"
+    stats_period_s: float = Field(1.0, gt=0)
+    connect_timeout_s: float = Field(15.0, gt=0)
+
+    @classmethod
+    def from_env(
+        cls: type[S], service: str, env: Mapping[str, str] | None = None, **overrides: Any
+    ) -> S:
+        """Build settings from ``env`` (default ``os.environ``); ``overrides`` win.
+
+        Raises
+        ------
+        ValueError
+            naming the environment variable whose value is invalid.
+        """
+        env = os.environ if env is None else env
+        values: dict[str, Any] = {"service": service}
+        for name in cls.model_fields:
+            var = name.upper() if name.startswith("zenoh_") else f"WAVEGRASP_{name.upper()}"
+            if var in env and name != "service":
+                text = env[var]
+                is_list = typing.get_origin(cls.model_fields[name].annotation) is list
+                values[name] = split_endpoints(text) if is_list else text
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        try:
+            return cls(**values)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            field = str(first["loc"][0]) if first["loc"] else "?"
+            var = field.upper() if field.startswith("zenoh_") else f"WAVEGRASP_{field.upper()}"
+            raise ValueError(f"setting {field} (env {var}): {first['msg']}") from None

@@ -1,0 +1,154 @@
+"""Tests of wavegrasp.recording_io: MCAP writer/reader, bag conversions, synthetic scene, errors."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.recording_io.reader import (
+    CONTRACT_TOPICS,
+    RecordedMessage,
+    RecordingError,
+    open_recording,
+)
+from wavegrasp.recording_io.synthetic import RADIUS, write_synthetic_recording
+from wavegrasp.recording_io.typestore import ros2_typestore
+from wavegrasp.recording_io.writer import RecordingWriter, write_ros1_bag, write_ros2_bag
+
+SECONDS, RATE, POINTS = 2.0, 10.0, 500
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "synthetic.mcap"
+    return write_synthetic_recording(path, SECONDS, RATE, POINTS, seed=7)
+
+
+@pytest.fixture(scope="module")
+def messages(synthetic: Path) -> list[RecordedMessage]:
+    return list(open_recording(synthetic).messages())
+
+
+def by_topic(msgs: list[RecordedMessage]) -> dict[str, list[tuple[int, str, bytes]]]:
+    out: dict[str, list[tuple[int, str, bytes]]] = defaultdict(list)
+    for m in msgs:
+        out[m.topic].append((m.log_time_ns, m.msgtype, m.cdr))
+    return dict(out)
+
+
+def test_synthetic_round_trip(synthetic: Path, messages: list[RecordedMessage]) -> None:
+    rec = open_recording(synthetic)
+    assert rec.format == "mcap"
+    assert rec.metadata == {"generator": "wavegrasp.synthetic", "generator_version": "1",
+                            "seed": "7", "wave": "kinematic", "object": "sphere"}
+    assert rec.topics == {"/trisect/points": "sensor_msgs/msg/PointCloud2",
+                          "/tf_static": "tf2_msgs/msg/TFMessage",
+                          "/groundtruth/object": "geometry_msgs/msg/PoseStamped"}
+    counts = {t: len(v) for t, v in by_topic(messages).items()}
+    assert counts == {"/trisect/points": 20, "/tf_static": 2, "/groundtruth/object": 200}
+    assert rec.message_count == len(messages) == 222
+    times = [m.log_time_ns for m in messages]
+    assert times == sorted(times) and (rec.start_ns, rec.end_ns) == (times[0], times[-1])
+    assert "MSG: std_msgs/Header" in rec.msgdef("sensor_msgs/msg/PointCloud2")
+
+
+def test_sphere_points_match_groundtruth(messages: list[RecordedMessage]) -> None:
+    """The cloud, taken to world with tf_static, has points on the ground-truth sphere."""
+    ts = ros2_typestore()
+    tf = ts.deserialize_cdr(messages[0].cdr, "tf2_msgs/msg/TFMessage").transforms[0].transform
+    rot = Rotation.from_quat([tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w])
+    eye = np.array([tf.translation.x, tf.translation.y, tf.translation.z])
+    gt = {m.log_time_ns: ts.deserialize_cdr(m.cdr, m.msgtype).pose.position
+          for m in messages if m.topic == "/groundtruth/object"}
+    cloud = next(m for m in messages if m.topic == "/trisect/points")
+    pc = ts.deserialize_cdr(cloud.cdr, cloud.msgtype)
+    assert (pc.width, pc.point_step, pc.header.frame_id) == (POINTS, 12, "trisect_optical")
+    pts = rot.apply(np.frombuffer(pc.data, "<f4").reshape(-1, 3).astype(float)) + eye
+    c = gt[cloud.log_time_ns]
+    dist = np.linalg.norm(pts - [c.x, c.y, c.z], axis=1)
+    assert np.mean(np.abs(dist - RADIUS) < 0.01) > 0.4
+
+
+def test_writer_bytes_and_determinism(tmp_path: Path, synthetic: Path) -> None:
+    again = write_synthetic_recording(tmp_path / "again.mcap", SECONDS, RATE, POINTS, seed=7)
+    assert again.read_bytes() == synthetic.read_bytes()
+    other = write_synthetic_recording(tmp_path / "other.mcap", SECONDS, RATE, POINTS, seed=8)
+    assert other.read_bytes() != synthetic.read_bytes()
+    cdr = ros2_typestore().serialize_cdr(
+        ros2_typestore().types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")
+    with RecordingWriter(tmp_path / "w.mcap", {"k": "v"}) as w:
+        w.write_cdr("/chat", "std_msgs/msg/String", 5, cdr)
+    rec = open_recording(tmp_path / "w.mcap", topics=None)
+    assert [(m.topic, m.log_time_ns, m.cdr) for m in rec.messages()] == [("/chat", 5, cdr)]
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
+def test_bag_conversions(tmp_path: Path, messages: list[RecordedMessage], fmt: str) -> None:
+    if fmt == "ros1":
+        path = write_ros1_bag(tmp_path / "x.bag", messages)
+    else:
+        path = write_ros2_bag(tmp_path / "x_bag", messages)
+    rec = open_recording(path)
+    assert (rec.format, rec.message_count, rec.metadata) == (fmt, len(messages), {})
+    assert set(rec.topics) == set(CONTRACT_TOPICS)
+    back = list(rec.messages())
+    assert by_topic(back) == by_topic(messages)
+    assert [m.log_time_ns for m in back] == sorted(m.log_time_ns for m in messages)
+    assert "float32 x" in rec.msgdef("geometry_msgs/msg/PoseStamped")
+
+
+def test_mixed_json_channels_are_skipped(tmp_path: Path, messages: list[RecordedMessage]) -> None:
+    path = tmp_path / "run.mcap"
+    with RecordingWriter(path, {}) as w:
+        w.write_cdr("/trisect/points", messages[1].msgtype, 1, messages[1].cdr)
+        raw: Writer = w._writer
+        schema = raw.register_schema("Stat", "jsonschema", b'{"type": "object"}')
+        channel = raw.register_channel("/trisect/points_json", "json", schema)
+        raw.add_message(channel, 2, b'{"a": 1}', 2)
+    assert [m.cdr for m in open_recording(path, topics=None).messages()] == [messages[1].cdr]
+
+
+def test_truncated_mcap(tmp_path: Path, synthetic: Path, messages: list[RecordedMessage]) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = synthetic.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    rec = open_recording(cut)
+    got = []
+    with pytest.raises(RecordingError, match=r"cut\.mcap: truncated after \d+ bytes"):
+        got.extend(rec.messages())
+    assert 0 < len(got) < len(messages)
+    assert got == messages[: len(got)]
+
+
+def test_errors_name_the_file(tmp_path: Path, synthetic: Path) -> None:
+    text, empty = tmp_path / "notes.txt", tmp_path / "empty.mcap"
+    text.write_text("hello, not a recording\n")
+    empty.write_bytes(b"")
+    fake = tmp_path / "fake.mcap"
+    fake.write_text("{}")
+    badbag = tmp_path / "bad.bag"
+    badbag.write_bytes(b"#ROSBAG V2.0\n garbage")
+    cases = {
+        tmp_path / "missing.mcap": "no such file",
+        text: "not a recording: expected an MCAP file, a ROS 1 .bag or a ROS 2 bag folder",
+        empty: "empty file",
+        fake: "not an MCAP file (bad magic)",
+        badbag: "cannot read the ROS 1 bag",
+        tmp_path: "folder without metadata.yaml",
+    }
+    for path, what in cases.items():
+        with pytest.raises(RecordingError) as err:
+            open_recording(path)
+        assert str(path) in str(err.value) and what in str(err.value)
+    none = tmp_path / "other_topics.mcap"
+    with RecordingWriter(none, {}) as w:
+        w.write_groundtruth(1, (0, 0, 0), (0, 0, 0, 1))
+    with pytest.raises(RecordingError, match="other_topics.mcap: contains none of the topics"):
+        open_recording(none, topics=("/trisect/points", "/tf_static"))
+    with pytest.raises(ValueError, match="shape"):
+        RecordingWriter(tmp_path / "bad.mcap", {}).write_points(1, np.zeros((4, 2)))
