@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 from scipy.spatial.transform import Rotation
-
 from wavegrasp.recording_io.reader import (
     CONTRACT_TOPICS,
     RecordedMessage,
@@ -99,7 +98,7 @@ def test_bag_conversions(tmp_path: Path, messages: list[RecordedMessage], fmt: s
     back = list(rec.messages())
     assert by_topic(back) == by_topic(messages)
     assert [m.log_time_ns for m in back] == sorted(m.log_time_ns for m in messages)
-    assert "float32 x" in rec.msgdef("geometry_msgs/msg/PoseStamped")
+    assert "float64 x" in rec.msgdef("geometry_msgs/msg/PoseStamped")
 
 
 def test_mixed_json_channels_are_skipped(tmp_path: Path, messages: list[RecordedMessage]) -> None:
@@ -113,16 +112,27 @@ def test_mixed_json_channels_are_skipped(tmp_path: Path, messages: list[Recorded
     assert [m.cdr for m in open_recording(path, topics=None).messages()] == [messages[1].cdr]
 
 
-def test_truncated_mcap(tmp_path: Path, synthetic: Path, messages: list[RecordedMessage]) -> None:
-    cut = tmp_path / "cut.mcap"
-    data = synthetic.read_bytes()
+def test_truncated_mcap(tmp_path: Path) -> None:
+    """Cut a 10 s recording (several 1 MiB chunks) at 60 %: the complete chunks are read."""
+    full, cut = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    data = write_synthetic_recording(full, seconds=10.0, seed=1).read_bytes()
     cut.write_bytes(data[: int(len(data) * 0.6)])
+    expected = list(open_recording(full).messages())
     rec = open_recording(cut)
-    got = []
+    assert rec.metadata["seed"] == "1" and len(rec.topics) == 3
+    got: list[RecordedMessage] = []
     with pytest.raises(RecordingError, match=r"cut\.mcap: truncated after \d+ bytes"):
         got.extend(rec.messages())
-    assert 0 < len(got) < len(messages)
-    assert got == messages[: len(got)]
+    assert 0 < len(got) < len(expected)
+    assert got == expected[: len(got)]
+    bad = tmp_path / "bad.mcap"  # bytes zeroed inside the first chunk: CRC check fails
+    bad.write_bytes(data[: len(data) // 4] + bytes(1000) + data[len(data) // 4 + 1000 :])
+    with pytest.raises(RecordingError, match=r"bad\.mcap: corrupt"):
+        list(open_recording(bad).messages())
+    short = tmp_path / "short.mcap"
+    short.write_bytes(data[:4000])
+    with pytest.raises(RecordingError, match=r"short\.mcap: contains none .*truncated"):
+        open_recording(short)
 
 
 def test_errors_name_the_file(tmp_path: Path, synthetic: Path) -> None:
@@ -150,5 +160,5 @@ def test_errors_name_the_file(tmp_path: Path, synthetic: Path) -> None:
         w.write_groundtruth(1, (0, 0, 0), (0, 0, 0, 1))
     with pytest.raises(RecordingError, match="other_topics.mcap: contains none of the topics"):
         open_recording(none, topics=("/trisect/points", "/tf_static"))
-    with pytest.raises(ValueError, match="shape"):
-        RecordingWriter(tmp_path / "bad.mcap", {}).write_points(1, np.zeros((4, 2)))
+    with RecordingWriter(tmp_path / "bad.mcap", {}) as w, pytest.raises(ValueError, match="shape"):
+        w.write_points(1, np.zeros((4, 2)))

@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from .recording import RecordedMessage, Recording, RecordingError
+from .recording import RecordedMessage, Recording, RecordingError, describe
 from .typestore import ros1_typestore, ros2_typestore
 
 KIND = {"ros1": "ROS 1 bag", "ros2": "ROS 2 bag"}
@@ -39,7 +39,7 @@ class BagRecording(Recording):
         return AnyReader([self.path], default_typestore=store)
 
     def _fail(self, err: Exception) -> RecordingError:
-        return RecordingError(f"{self.path}: cannot read the {KIND[self.format]}: {err!r}")
+        return RecordingError(f"{self.path}: cannot read the {KIND[self.format]}: {describe(err)}")
 
     @classmethod
     def open(cls, path: Path, fmt: str, topics: tuple[str, ...] | None) -> BagRecording:

@@ -10,7 +10,7 @@ messages of a partly written chunk are lost (chunks are MCAP's unit of compressi
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
@@ -18,7 +18,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from .recording import RecordedMessage, Recording, RecordingError
+from .recording import RecordedMessage, Recording, RecordingError, describe
 
 MAGIC = b"\x89MCAP0\r\n"
 METADATA_NAME = "wavegrasp.recording"
@@ -38,8 +38,8 @@ class McapRecording(Recording):
     """An MCAP recording; see the module docstring for ordering and truncation."""
 
     problem: str | None = None  # why the linear scan stopped early (truncated or corrupt)
-    _channel_ids: frozenset[int] = frozenset()
-    _indexed: bool = False  # read through the summary's chunk index, in log-time order
+    _channel_ids: frozenset[int] = field(default=frozenset(), repr=False)
+    _indexed: bool = field(default=False, repr=False)  # read by the summary's chunk index
 
     @classmethod
     def open(cls, path: Path, topics: tuple[str, ...] | None) -> McapRecording:
@@ -50,11 +50,11 @@ class McapRecording(Recording):
             complete = size > 2 * len(MAGIC) and f.read() == MAGIC
             f.seek(0)
             try:
-                reader = SeekingReader(f)
+                reader = SeekingReader(f, validate_crcs=True)
                 summary = reader.get_summary() if complete else None
                 meta = list(reader.iter_metadata()) if summary else []
             except Exception as err:
-                raise RecordingError(f"{path}: corrupt MCAP summary: {err!r}") from None
+                raise RecordingError(f"{path}: corrupt MCAP summary: {describe(err)}") from None
         rec = cls(path=path, format="mcap", _indexed=summary is not None)
         if summary is None:
             schemas, channels, meta = rec._scan(size, complete)
@@ -65,13 +65,13 @@ class McapRecording(Recording):
             topics is None or c.topic in topics)}
         rec._channel_ids = frozenset(chosen)
         rec.topics = {c.topic: schemas[c.schema_id].name for c in chosen.values()}
-        rec._msgdefs = {s.name: s.data.decode() for s in schemas.values()
+        rec._msgdefs = {s.name: s.data.decode(errors="replace") for s in schemas.values()
                         if s.encoding in ROS2_SCHEMAS and s.name in rec.topics.values()}
         stats = summary.statistics if summary else None
         if stats is not None:
             rec.message_count = sum(stats.channel_message_counts.get(i, 0) for i in chosen)
             rec.start_ns, rec.end_ns = stats.message_start_time, stats.message_end_time
-        rec.check_topics(topics)
+        rec.check_topics(topics, rec.problem)
         return rec
 
     def _scan(
@@ -83,7 +83,7 @@ class McapRecording(Recording):
         meta: list[Metadata] = []
         with open(self.path, "rb") as f:
             try:
-                for record in StreamReader(f).records:
+                for record in StreamReader(f, validate_crcs=True).records:
                     if isinstance(record, Schema):
                         schemas[record.id] = record
                     elif isinstance(record, Channel):
@@ -91,8 +91,8 @@ class McapRecording(Recording):
                     elif isinstance(record, Metadata):
                         meta.append(record)
             except Exception as err:
-                what = f"truncated after {size} bytes" if not complete else "corrupt"
-                self.problem = f"{what}: {err!r}"
+                what = f"truncated after {size} bytes (no footer)" if not complete else "corrupt"
+                self.problem = f"{what}: {describe(err)}"
         return schemas, channels, meta
 
     def messages(self) -> Iterator[RecordedMessage]:
@@ -108,19 +108,19 @@ class McapRecording(Recording):
             except RecordingError:
                 raise
             except Exception as err:
-                self.problem = self.problem or f"corrupt: {err!r}"
+                self.problem = self.problem or f"corrupt: {describe(err)}"
         if self.problem:
-            raise RecordingError(f"{self.path}: {self.problem} ({count} messages read)")
+            raise RecordingError(f"{self.path}: {self.problem}; read {count} messages before it")
 
     def _iter(self, f: BinaryIO) -> Iterator[tuple[Channel, Message]]:
         if self._indexed:
-            reader = SeekingReader(f)
+            reader = SeekingReader(f, validate_crcs=True)
             for _, channel, msg in reader.iter_messages(topics=list(self.topics)):
                 if channel.id in self._channel_ids:
                     yield channel, msg
             return
         channels: dict[int, Channel] = {}
-        for record in StreamReader(f).records:
+        for record in StreamReader(f, validate_crcs=True).records:
             if isinstance(record, Channel):
                 channels[record.id] = record
             elif isinstance(record, Message) and record.channel_id in self._channel_ids:

@@ -15,6 +15,12 @@ class RecordingError(Exception):
     """A recording cannot be read; the message names the file and what is wrong."""
 
 
+def describe(err: BaseException) -> str:
+    """Return 'ExceptionType: message' (or just the type) for a library's exception."""
+    text = str(err)
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
 @dataclass(frozen=True)
 class RecordedMessage:
     """One ROS message of a recording.
@@ -76,8 +82,10 @@ class Recording:
         """Yield the requested topics' messages in log-time order."""
         raise NotImplementedError
 
-    def check_topics(self, requested: tuple[str, ...] | None) -> None:
-        """Raise RecordingError if none of the `requested` topics (None: any) is present."""
+    def check_topics(self, requested: tuple[str, ...] | None, why: str | None = None) -> None:
+        """Raise RecordingError if none of the `requested` topics (None: any) is present; `why`
+        (e.g. the file's truncation) is appended to the message."""
         if not self.topics:
             wanted = ", ".join(requested) if requested else "any ROS 2 (CDR) topic"
-            raise RecordingError(f"{self.path}: contains none of the topics {wanted}")
+            why = f" ({why})" if why else ""
+            raise RecordingError(f"{self.path}: contains none of the topics {wanted}{why}")

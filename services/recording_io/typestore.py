@@ -1,7 +1,7 @@
 """The rosbags type stores used to serialize, convert and describe recorded messages.
 
 ROS 2 messages are CDR against ROS 2 Humble's definitions; ROS 1 bags use ROS 1 Noetic's
-definitions (whose `std_msgs/Header` carries a `seq` field that CDR drops).
+definitions (whose `std_msgs/Header` carries a `seq` field that CDR drops), completed by Humble's.
 """
 
 from __future__ import annotations
@@ -20,8 +20,14 @@ def ros2_typestore() -> Typestore:
 
 @cache
 def ros1_typestore() -> Typestore:
-    """Return the shared ROS 1 Noetic type store (ROS 1 bags, md5sums)."""
-    return get_typestore(Stores.ROS1_NOETIC)
+    """Return the shared ROS 1 type store (ROS 1 bags' definitions and md5sums).
+
+    ROS 1 Noetic's types, plus ROS 2 Humble's for packages Noetic's store lacks (tf2_msgs).
+    """
+    store = get_typestore(Stores.EMPTY)
+    noetic = get_typestore(Stores.ROS1_NOETIC)
+    store.register({**ros2_typestore().fielddefs, **noetic.fielddefs})
+    return store
 
 
 def check_msgtype(msgtype: str, store: Typestore) -> None:

@@ -1,0 +1,88 @@
+"""Shared fixtures: a real zenoh router process, a test-side bus, generated recordings."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from wavegrasp.recording_io.synthetic import write_synthetic_recording
+from wavegrasp.runtime.bus import Bus
+from wavegrasp.runtime.settings import Settings
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wavegrasp_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "wavegrasp", *args]
+
+
+def spawn(args: list[str], env: dict[str, str], **kw) -> subprocess.Popen:
+    """Start a wavegrasp process in its own process group (so a kill reaches all of it)."""
+    return subprocess.Popen(args, env={**os.environ, **env, "PYTHONUNBUFFERED": "1"},
+                            start_new_session=True, **kw)
+
+
+def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+    if proc.poll() is None:
+        os.killpg(proc.pid, sig)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode
+
+
+class Router:
+    def __init__(self) -> None:
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.env = {"ZENOH_CONNECT": self.endpoint}
+        self.proc = spawn(wavegrasp_cmd("router", "--listen", self.endpoint), {})
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", self.port)) == 0:
+                    return
+            time.sleep(0.05)
+        raise RuntimeError("router did not start listening")
+
+    def bus(self, name: str = "test") -> Bus:
+        return Bus(Settings.from_env(name, env=self.env))
+
+
+@pytest.fixture
+def router() -> Iterator[Router]:
+    r = Router()
+    yield r
+    stop(r.proc)
+
+
+@pytest.fixture(scope="session")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A short recording that follows the recording contract (5 s, 50 camera frames)."""
+    path = tmp_path_factory.mktemp("rec") / "synthetic.mcap"
+    return write_synthetic_recording(path, seconds=5.0, points_per_frame=3000, seed=7)
+
+
+def wait_until(predicate, timeout: float = 10.0, period: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period)
+    return predicate()

@@ -1,0 +1,113 @@
+"""``wavegrasp up`` end to end: services as separate processes over zenoh, real MCAP files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import wavegrasp_cmd
+from mcap.reader import make_reader
+
+from wavegrasp.recording_io.reader import open_recording
+from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
+
+
+def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120):
+    return subprocess.run(wavegrasp_cmd("up", str(recording), "--pace", pace, "--out", str(out)),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def recorded(run_mcap: Path) -> tuple[dict[str, list[bytes]], dict[str, tuple[str, str]]]:
+    """Payloads per topic, and (schema name, schema encoding) per topic, of a run file."""
+    payloads: dict[str, list[bytes]] = {}
+    schemas: dict[str, tuple[str, str]] = {}
+    with run_mcap.open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            payloads.setdefault(channel.topic, []).append(message.data)
+            assert schema is not None and schema.data, f"{channel.topic} has no schema"
+            schemas[channel.topic] = (schema.name, schema.encoding)
+    return payloads, schemas
+
+
+def source_frames(recording: Path) -> list[bytes]:
+    return [m.cdr for m in open_recording(recording).messages() if m.topic == "/trisect/points"]
+
+
+def check_run(recording: Path, out: Path, result: subprocess.CompletedProcess) -> dict:
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    payloads, schemas = recorded(out / "run.mcap")
+    expected = source_frames(recording)
+    assert len(expected) == 50
+    assert payloads["/trisect/points"] == expected, "camera frames must be recorded bit-identical"
+    assert schemas["/trisect/points"] == ("sensor_msgs/msg/PointCloud2", "ros2msg")
+    assert schemas["/tf_static"] == ("tf2_msgs/msg/TFMessage", "ros2msg")
+    assert schemas["/groundtruth/object"] == ("geometry_msgs/msg/PoseStamped", "ros2msg")
+    assert schemas["wavegrasp/clock"] == ("Clock", "jsonschema")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ended"] == "finished" and not summary["crashed"]
+    assert summary["player"]["frames"] == 50
+    return summary
+
+
+def test_up_fast_records_every_frame_bit_identical(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    summary = check_run(recording, out, run_up(recording, out))
+    assert summary["bad_messages"] == {}
+    # The run is itself a recording: the player can replay it.
+    replay = open_recording(out / "run.mcap")
+    assert set(replay.topics) == {"/trisect/points", "/tf_static", "/groundtruth/object"}
+    assert replay.metadata.get("seed") == "7"
+
+
+def test_up_lockstep_acknowledges_each_frame(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    check_run(recording, out, run_up(recording, out, pace="lockstep"))
+    payloads, _ = recorded(out / "run.mcap")
+    acks = [json.loads(p)["frame_seq"] for p in payloads["wavegrasp/recorder/ack"]]
+    assert acks == list(range(50))
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2"])
+def test_up_replays_ros_bags(kind: str, recording: Path, tmp_path: Path) -> None:
+    messages = list(open_recording(recording).messages())
+    if kind == "ros1":
+        bag = write_ros1_bag(tmp_path / "input.bag", messages)
+    else:
+        bag = write_ros2_bag(tmp_path / "input_bag", messages)
+    assert open_recording(bag).format == kind
+    out = tmp_path / "run"
+    check_run(recording, out, run_up(bag, out))
+
+
+@pytest.mark.parametrize("content,problem", [
+    (None, "no such file"),
+    (b"hello, this is not a recording\n", "not an MCAP file"),
+    (b"", "empty"),
+])
+def test_bad_recording_gets_a_clear_error(content, problem, tmp_path: Path) -> None:
+    path = tmp_path / "input.mcap"
+    if content is not None:
+        path.write_bytes(content)
+    result = subprocess.run(wavegrasp_cmd("player", str(path)), capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2
+    assert str(path) in result.stderr and problem in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_truncated_recording_names_the_file(recording: Path, tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = recording.read_bytes()
+    cut.write_bytes(data[: len(data) * 4 // 5])  # past the first complete chunk
+    out = tmp_path / "run"
+    result = run_up(cut, out)
+    assert result.returncode == 1  # the player failed, and the launcher says so
+    assert str(cut) in result.stdout and "truncated" in result.stdout
+    assert "Traceback" not in result.stdout
+    # What was replayed before the cut is still recorded, in a readable file.
+    payloads, _ = recorded(out / "run.mcap")
+    assert 0 < len(payloads["/trisect/points"]) < 50
+    assert payloads["/trisect/points"] == source_frames(recording)[: len(
+        payloads["/trisect/points"])]
