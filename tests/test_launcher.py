@@ -1,0 +1,124 @@
+"""The launcher as users run it: bad input on every key while it runs, and Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from conftest import free_port, spawn, wait_until, wavegrasp_cmd
+
+from wavegrasp.recording_io.synthetic import write_synthetic_recording
+from wavegrasp.runtime.bus import CDR, JSON, Bus
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, ServiceStats, ack_key, stats_key
+
+GARBAGE = [
+    b"\x00\xff\xfe random bytes \x13\x37",
+    b'{"header": "not a header"}',  # valid JSON, wrong type
+    b"{}",  # missing fields
+    b'{"header": {"seq": 1, "stamp_ns": NaN}}',
+    b"",
+]
+
+
+@pytest.fixture(scope="module")
+def long_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("long") / "long.mcap"
+    return write_synthetic_recording(path, seconds=12.0, points_per_frame=500, seed=3)
+
+
+def start_up(recording: Path, out: Path, port: int) -> subprocess.Popen:
+    return spawn(wavegrasp_cmd("up", str(recording), "--pace", "realtime", "--out", str(out)),
+                 {"WAVEGRASP_ROUTER_PORT": str(port)}, stdout=subprocess.PIPE,
+                 stderr=subprocess.STDOUT)
+
+
+def connect(port: int) -> Bus:
+    return Bus(Settings.from_env("fuzzer", env={"ZENOH_CONNECT": f"tcp/127.0.0.1:{port}"},
+                                 connect_timeout_s=30))
+
+
+def keys_to_fuzz(subscriptions: list[str]) -> list[str]:
+    """Every concrete key a service's subscriptions cover (``**`` covers the whole contract)."""
+    contract = [*KEY_TYPES, *ROS_KEYS, ack_key("recorder"), stats_key("perception")]
+    keys = []
+    for sub in subscriptions:
+        keys += contract if sub == "**" else [sub]
+    return sorted(set(keys))
+
+
+def test_garbage_on_every_subscribed_key_is_counted(long_recording: Path, tmp_path: Path):
+    port = free_port()
+    up = start_up(long_recording, tmp_path / "run", port)
+    bus = connect(port)
+    stats: dict[str, ServiceStats] = {}
+    try:
+        bus.subscribe("wavegrasp/*/stats", lambda m, d: stats.__setitem__(m.service, m),
+                      ServiceStats)
+
+        def pump() -> None:
+            while not bus.inbox.empty():
+                bus.dispatch(bus.inbox.get())
+
+        services = ["recorder", "player"]
+        assert wait_until(lambda: (pump(), all(s in stats for s in services))[1], timeout=30)
+        sent: dict[str, int] = {}
+        for key in sorted({k for s in services for k in keys_to_fuzz(stats[s].subscriptions)}):
+            encoding = CDR if key in ROS_KEYS else JSON
+            for payload in GARBAGE:
+                bus.publish_bytes(key, payload, encoding)
+            sent[key] = len(GARBAGE)
+
+        def all_counted() -> bool:
+            pump()
+            return all(stats[s].bad.get(k, 0) >= sent[k] for s in services
+                       for k in keys_to_fuzz(stats[s].subscriptions))
+
+        assert wait_until(all_counted, timeout=10), {s: stats[s].bad for s in services}
+        assert not bus.wait_for_services(services, timeout_s=5), "a service died"
+    finally:
+        bus.close()
+    output = up.communicate(timeout=60)[0].decode()
+    assert up.returncode == 0, output[-3000:]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["bad_messages"]["recorder"]["trisect/points"] >= len(GARBAGE)
+    assert summary["player"]["frames"] == 120, "the run went on through the garbage"
+    assert "bad messages" in output
+
+
+def test_ctrl_c_leaves_nothing_behind(long_recording: Path, tmp_path: Path) -> None:
+    shm_before = set(os.listdir("/dev/shm"))
+    port = free_port()
+    up = start_up(long_recording, tmp_path / "run", port)
+    bus = connect(port)
+    try:
+        assert not bus.wait_for_services(["router", "recorder", "player"], timeout_s=30)
+    finally:
+        bus.close()
+    children = psutil.Process(up.pid).children(recursive=True)
+    assert len(children) >= 3
+    time.sleep(1.0)  # mid-run
+    os.kill(up.pid, signal.SIGINT)
+    output = up.communicate(timeout=60)[0].decode()
+    assert up.returncode == 130, output[-3000:]
+    assert wait_until(lambda: not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE
+                                      for c in children), timeout=5)
+    with socket.socket() as s:  # nothing listens on the router's port any more
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+        s.listen()
+    assert set(os.listdir("/dev/shm")) <= shm_before
+    # What was recorded until Ctrl-C is in a finished, readable file.
+    from mcap.reader import make_reader
+
+    with (tmp_path / "run" / "run.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count > 0
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["ended"] == "interrupted"
