@@ -11,6 +11,7 @@ completed, 1 when a service crashed, 2 for bad arguments, 130 after Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import queue
@@ -152,10 +153,8 @@ class Launcher:
                     self.log(f"{name} did not stop in {STOP_TIMEOUT_S:.0f} s: killing it")
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait()
-            try:  # reap anything the service itself started
+            with contextlib.suppress(ProcessLookupError):  # anything the service started
                 os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         if self.bus is not None:
             self.bus.close()
             self.bus = None

@@ -8,10 +8,10 @@ import sys
 import time
 from pathlib import Path
 
-from conftest import Router, spawn, stop, wait_until
-
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import Header, Hop, ObjectObservation, ServiceStats, Vec3, health_key
+
+from conftest import Router, spawn, stop, wait_until
 
 ECHO = str(Path(__file__).with_name("echo_node.py"))
 

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import psutil
 import pytest
-from conftest import free_port, spawn, wait_until, wavegrasp_cmd
 
 from wavegrasp.recording_io.synthetic import write_synthetic_recording
 from wavegrasp.runtime.bus import CDR, JSON, Bus
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, ServiceStats, ack_key, stats_key
+
+from conftest import free_port, spawn, wait_until, wavegrasp_cmd
 
 GARBAGE = [
     b"\x00\xff\xfe random bytes \x13\x37",

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 from scipy.spatial.transform import Rotation
+
 from wavegrasp.recording_io.reader import (
     CONTRACT_TOPICS,
     RecordedMessage,

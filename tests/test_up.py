@@ -7,11 +7,12 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import wavegrasp_cmd
 from mcap.reader import make_reader
 
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
+
+from conftest import wavegrasp_cmd
 
 
 def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120):

@@ -8,6 +8,7 @@ never stops the service.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import queue
@@ -201,17 +202,10 @@ class Bus:
         return missing
 
     def close(self) -> None:
-        for item in reversed(self._keep):
-            try:
+        for item in [*reversed(self._keep), *self._publishers.values()]:
+            with contextlib.suppress(zenoh.ZError):
                 item.undeclare()
-            except zenoh.ZError:
-                pass
         self._keep.clear()
-        for pub in self._publishers.values():
-            try:
-                pub.undeclare()
-            except zenoh.ZError:
-                pass
         self._publishers.clear()
         self.session.close()
 
