@@ -28,6 +28,7 @@ from wavegrasp.runtime.trace import CdrAttachment, derived_header
 from wavegrasp.schemas import (
     MESSAGE_TYPES,
     ROS_KEYS,
+    Clock,
     FrameAck,
     Header,
     PlayerStatus,
@@ -124,7 +125,8 @@ class Recorder(Service):
             self.writer.add_metadata("wavegrasp.recording", msg.metadata)
             self._wrote_metadata = True
         header = getattr(msg, "header", None)
-        log_time = self.clock.now_ns()
+        # A tick is its own time; the clock subscription may not have seen it yet.
+        log_time = msg.header.stamp_ns if isinstance(msg, Clock) else self.clock.now_ns()
         publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
         channel = self._channel(d.key, "json", model.__name__, "jsonschema",
                                 schema_text(model.__name__))

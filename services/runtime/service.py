@@ -37,7 +37,7 @@ class Service:
         self.settings = settings
         self.name = settings.service
         self.bus = bus if bus is not None else Bus(settings)
-        self.clock = RecordingClock()
+        self.clock = RecordingClock(wall=settings.clock == "wall")
         self.stopping = threading.Event()
         self.exit_code = 0
         self._started = time.monotonic()

@@ -34,6 +34,8 @@ class Settings(BaseModel):
     zenoh_listen: list[str] = Field(default_factory=list)
     zenoh_mode: Literal["client", "peer", "router"] = "client"
     log_level: str = "INFO"
+    clock: Literal["recording", "wall"] = Field(
+        "recording", description="follow wavegrasp/clock (replays) or the wall (live vehicle)")
     stats_period_s: float = Field(1.0, gt=0)
     connect_timeout_s: float = Field(15.0, gt=0)
 

@@ -1,0 +1,82 @@
+"""The shared runtime's pieces driven directly: settings, clock, and a service's handlers."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from wavegrasp.player.main import PlayerSettings
+from wavegrasp.recorder.main import Recorder, RecorderSettings
+from wavegrasp.recording_io.reader import open_recording
+from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
+from wavegrasp.runtime.clock import RecordingClock
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
+from wavegrasp.schemas import Clock, Header
+
+
+def test_settings_from_env_parse_lists_and_name_bad_variables() -> None:
+    env = {"ZENOH_CONNECT": "tcp/a:1, tcp/b:2", "WAVEGRASP_PACE": "lockstep",
+           "WAVEGRASP_WAIT_FOR": "recorder,gate"}
+    s = PlayerSettings.from_env("player", env=env)
+    assert s.zenoh_connect == ["tcp/a:1", "tcp/b:2"]
+    assert s.pace == "lockstep" and s.wait_for == ["recorder", "gate"]
+    assert PlayerSettings.from_env("player", env=env, pace="fast").pace == "fast"
+    with pytest.raises(ValueError, match="WAVEGRASP_PACE"):
+        PlayerSettings.from_env("player", env={"WAVEGRASP_PACE": "warp"})
+
+
+def test_clock_follows_ticks_and_scales_with_rate() -> None:
+    clock = RecordingClock()
+    before = time.time_ns()
+    assert clock.now_ns() >= before and not clock.started  # wall until the first tick
+    clock.on_clock(Clock(header=Header(stamp_ns=5_000_000_000), rate=0.0))
+    time.sleep(0.01)
+    assert clock.now_ns() == 5_000_000_000  # frozen between lockstep ticks
+    clock.on_clock(Clock(header=Header(stamp_ns=6_000_000_000), rate=1.0))
+    time.sleep(0.02)
+    assert 6_000_000_000 + 10**7 < clock.now_ns() < 6_000_000_000 + 10**9
+
+
+def test_trace_grows_one_hop_per_service() -> None:
+    h = new_header("player", seq=3, stamp_ns=42)
+    h2 = derived_header(h, "perception", recv_ns=h.trace[0].recv_ns + 1)
+    assert [x.service for x in h2.trace] == ["player", "perception"]
+    assert h2.stamp_ns == 42 and h2.seq == 3 and len(h.trace) == 1
+
+
+@pytest.fixture
+def isolated_bus(request: pytest.FixtureRequest):
+    """A real zenoh session that talks to no one: handlers are driven by hand."""
+    bus = Bus(Settings(service=request.param, zenoh_mode="peer", zenoh_connect=[],
+                       zenoh_listen=[]))
+    yield bus
+    bus.close()
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
+                                           tmp_path: Path) -> None:
+    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path), bus=isolated_bus)
+    frames = [m for m in open_recording(recording).messages() if m.topic == "/trisect/points"]
+    route = len(isolated_bus.subscriptions) - 1  # the recorder's "**" subscription
+    clock = Clock(header=Header(stamp_ns=frames[0].log_time_ns))
+    deliveries = [Delivery("wavegrasp/clock", clock.model_dump_json().encode(), f"{JSON};Clock",
+                           None, 0, route)]
+    for seq, m in enumerate(frames[:3]):
+        att = CdrAttachment(seq, 0, bytes(16), m.log_time_ns).encode()
+        deliveries.append(Delivery("trisect/points", m.cdr, f"{CDR};{m.msgtype}", att, 0, route))
+    deliveries.append(Delivery("trisect/points", b"\x00\x01\x00\x00junk", CDR, None, 0, route))
+    assert [isolated_bus.dispatch(d) for d in deliveries] == [True] * 4 + [False]
+    assert rec.frames == 3 and isolated_bus.bad["trisect/points"] == 1
+    rec.on_stop()
+    with rec.path.open("rb") as f:
+        got = [(c.topic, msg.log_time, msg.data)
+               for _, c, msg in make_reader(f).iter_messages(log_time_order=False)]
+    points = [g for g in got if g[0] == "/trisect/points"]
+    assert [p[2] for p in points] == [m.cdr for m in frames[:3]]
+    assert [p[1] for p in points] == [m.log_time_ns for m in frames[:3]]
+    assert ("wavegrasp/clock", frames[0].log_time_ns, deliveries[0].payload) in got
