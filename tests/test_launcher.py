@@ -123,3 +123,36 @@ def test_ctrl_c_leaves_nothing_behind(long_recording: Path, tmp_path: Path) -> N
         summary = make_reader(f).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["ended"] == "interrupted"
+
+
+def test_killed_recorder_loses_at_most_a_second(long_recording: Path, tmp_path: Path) -> None:
+    from wavegrasp.recording_io.reader import RecordingError, open_recording
+    from wavegrasp.schemas import FrameAck
+
+    port = free_port()
+    up = start_up(long_recording, tmp_path / "run", port)
+    bus = connect(port)
+    acked: list[int] = []
+    try:
+        bus.subscribe(ack_key("recorder"), lambda m, d: acked.append(m.frame_seq), FrameAck)
+        assert not bus.wait_for_services(["recorder", "player"], timeout_s=30)
+        recorder = next(c for c in psutil.Process(up.pid).children()
+                        if "recorder" in c.cmdline())
+        assert wait_until(lambda: (bus.dispatch(bus.inbox.get()) if not bus.inbox.empty()
+                                   else None, len(acked) >= 35)[1], timeout=30)
+        recorder.send_signal(signal.SIGKILL)
+        recorder.wait(5)
+        while not bus.inbox.empty():
+            bus.dispatch(bus.inbox.get())
+    finally:
+        bus.close()
+    output = up.communicate(timeout=60)[0].decode()
+    assert up.returncode == 1, "the launcher reports the crash"
+    assert "crashed" in output
+    frames = 0
+    try:
+        for m in open_recording(tmp_path / "run" / "run.mcap").messages():
+            frames += m.topic == "/trisect/points"
+    except RecordingError as exc:
+        assert "truncated" in str(exc)
+    assert frames >= len(acked) - 10, f"{frames} frames on disk, {len(acked)} acknowledged"
