@@ -13,17 +13,12 @@ from pathlib import Path
 
 import pytest
 
+from wavegrasp.ops.launcher import free_port
 from wavegrasp.recording_io.synthetic import write_synthetic_recording
 from wavegrasp.runtime.bus import Bus
 from wavegrasp.runtime.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wavegrasp_cmd(*args: str) -> list[str]:

@@ -11,7 +11,8 @@ import yaml
 
 from wavegrasp.ops.compose import interpolate, load_compose, start_order
 
-ROOT = Path(__file__).resolve().parent.parent
+from conftest import ROOT
+
 SPEC = ROOT.parent / "shared" / "compose-spec" / "compose-spec.json"
 COMPOSE = ROOT / "docker-compose.yml"
 

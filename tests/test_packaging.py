@@ -10,7 +10,7 @@ from pathlib import Path
 import wavegrasp
 import wavegrasp.schemas
 
-ROOT = Path(__file__).resolve().parent.parent
+from conftest import ROOT
 
 
 def test_editable_install_maps_the_fixed_folders() -> None:
