@@ -11,8 +11,8 @@ import os
 import sys
 from pathlib import Path
 
-SAMPLE_SECONDS = 60.0
-SAMPLE_SEED = 0
+# Wave 1 (the paper's largest) with the buoy, a minute: warm-up and several grasp attempts.
+SAMPLE = {"wave": 1, "object": "buoy", "seconds": 60.0, "seed": 0}
 
 
 def project_root() -> Path:
@@ -30,14 +30,22 @@ def default_recording() -> Path:
     shipped = project_root() / "recordings" / "sample.mcap"
     if shipped.exists():
         return shipped
-    from wavegrasp.recording_io.synthetic import write_synthetic_recording
+    return cached_recording(**SAMPLE)
 
-    path = cache_dir() / "recordings" / f"synthetic-{SAMPLE_SECONDS:.0f}s-seed{SAMPLE_SEED}.mcap"
+
+def cached_recording(wave: int, object: str, seconds: float, seed: int = 0,
+                     irregular: bool = False) -> Path:
+    """A wave-tank recording from the cache, generated (with a progress bar) on first use."""
+    from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig, generate
+
+    sea = "jonswap" if irregular else "regular"
+    name = f"wave{wave}-{object}-{sea}-{seconds:g}s-seed{seed}-v{GENERATOR_VERSION}.mcap"
+    path = cache_dir() / "recordings" / name
     if not path.exists():
-        print(f"generating the sample recording into {path} (first use only)", file=sys.stderr)
+        print(f"generating {path} (first use only)", file=sys.stderr)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_suffix(".partial")
-        write_synthetic_recording(partial, seconds=SAMPLE_SECONDS, seed=SAMPLE_SEED,
-                                  progress=True)
+        generate(RecordConfig(wave=wave, object=object, seconds=seconds, seed=seed,
+                              irregular=irregular), partial, progress=True)
         partial.replace(path)
     return path

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from wavegrasp.ops.launcher import free_port
-from wavegrasp.recording_io.synthetic import write_synthetic_recording
 from wavegrasp.runtime.bus import Bus
 from wavegrasp.runtime.settings import Settings
+from wavegrasp.wavetank.record import RecordConfig, generate
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -67,11 +67,18 @@ def router() -> Iterator[Router]:
     stop(r.proc)
 
 
+def make_recording(path: Path, seconds: float, seed: int = 0, wave: int = 1,
+                   object: str = "buoy", preroll_s: float = 5.0) -> Path:
+    """A wave-tank recording per the recording contract (10 camera frames a second)."""
+    generate(RecordConfig(wave=wave, object=object, seconds=seconds, seed=seed,
+                          preroll_s=preroll_s), path)
+    return path
+
+
 @pytest.fixture(scope="session")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A short recording that follows the recording contract (5 s, 50 camera frames)."""
-    path = tmp_path_factory.mktemp("rec") / "synthetic.mcap"
-    return write_synthetic_recording(path, seconds=5.0, points_per_frame=3000, seed=7)
+    return make_recording(tmp_path_factory.mktemp("rec") / "tank.mcap", seconds=5.0, seed=7)
 
 
 def wait_until(predicate, timeout: float = 10.0, period: float = 0.05) -> bool:

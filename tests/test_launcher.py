@@ -13,12 +13,11 @@ from pathlib import Path
 import psutil
 import pytest
 
-from wavegrasp.recording_io.synthetic import write_synthetic_recording
 from wavegrasp.runtime.bus import CDR, JSON, Bus
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, ServiceStats, ack_key, stats_key
 
-from conftest import free_port, spawn, wait_until, wavegrasp_cmd
+from conftest import free_port, make_recording, spawn, wait_until, wavegrasp_cmd
 
 GARBAGE = [
     b"\x00\xff\xfe random bytes \x13\x37",
@@ -32,7 +31,7 @@ GARBAGE = [
 @pytest.fixture(scope="module")
 def long_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("long") / "long.mcap"
-    return write_synthetic_recording(path, seconds=12.0, points_per_frame=500, seed=3)
+    return make_recording(path, seconds=12.0, seed=3, wave=2, object="can_empty")
 
 
 def start_up(recording: Path, out: Path, port: int) -> subprocess.Popen:

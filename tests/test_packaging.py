@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -20,8 +21,11 @@ def test_editable_install_maps_the_fixed_folders() -> None:
 
 def test_non_editable_install_is_self_contained(tmp_path: Path) -> None:
     target = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
-                    str(target), str(ROOT)], check=True, timeout=300)
+    try:
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
+                        str(target), str(ROOT)], check=True, timeout=300)
+    finally:
+        shutil.rmtree(ROOT / "build", ignore_errors=True)  # setuptools builds in the tree
     probe = ("import wavegrasp, wavegrasp.schemas, wavegrasp.ops.launcher, wavegrasp.player.main;"
              "from wavegrasp.schemas.export import schema_path;"
              "print(wavegrasp.__file__); print(schema_path('Clock').exists())")

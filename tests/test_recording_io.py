@@ -1,4 +1,4 @@
-"""Tests of wavegrasp.recording_io: MCAP writer/reader, bag conversions, synthetic scene, errors."""
+"""Tests of wavegrasp.recording_io: MCAP writer/reader, bag conversions, errors."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.writer import Writer
-from scipy.spatial.transform import Rotation
 
 from wavegrasp.recording_io.reader import (
     CONTRACT_TOPICS,
@@ -16,22 +15,22 @@ from wavegrasp.recording_io.reader import (
     RecordingError,
     open_recording,
 )
-from wavegrasp.recording_io.synthetic import RADIUS, write_synthetic_recording
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.recording_io.writer import RecordingWriter, write_ros1_bag, write_ros2_bag
 
-SECONDS, RATE, POINTS = 2.0, 10.0, 500
+from conftest import make_recording
+
+SECONDS = 2.0
 
 
 @pytest.fixture(scope="module")
-def synthetic(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("rec") / "synthetic.mcap"
-    return write_synthetic_recording(path, SECONDS, RATE, POINTS, seed=7)
+def tank(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_recording(tmp_path_factory.mktemp("rec") / "tank.mcap", SECONDS, seed=7)
 
 
 @pytest.fixture(scope="module")
-def messages(synthetic: Path) -> list[RecordedMessage]:
-    return list(open_recording(synthetic).messages())
+def messages(tank: Path) -> list[RecordedMessage]:
+    return list(open_recording(tank).messages())
 
 
 def by_topic(msgs: list[RecordedMessage]) -> dict[str, list[tuple[int, str, bytes]]]:
@@ -41,11 +40,11 @@ def by_topic(msgs: list[RecordedMessage]) -> dict[str, list[tuple[int, str, byte
     return dict(out)
 
 
-def test_synthetic_round_trip(synthetic: Path, messages: list[RecordedMessage]) -> None:
-    rec = open_recording(synthetic)
+def test_synthetic_round_trip(tank: Path, messages: list[RecordedMessage]) -> None:
+    rec = open_recording(tank)
     assert rec.format == "mcap"
-    assert rec.metadata == {"generator": "wavegrasp.synthetic", "generator_version": "1",
-                            "seed": "7", "wave": "kinematic", "object": "sphere"}
+    assert {"generator": "wavegrasp.wavetank", "seed": "7", "wave": "1",
+            "object": "buoy"}.items() <= rec.metadata.items()
     assert rec.topics == {"/trisect/points": "sensor_msgs/msg/PointCloud2",
                           "/tf_static": "tf2_msgs/msg/TFMessage",
                           "/groundtruth/object": "geometry_msgs/msg/PoseStamped"}
@@ -57,28 +56,11 @@ def test_synthetic_round_trip(synthetic: Path, messages: list[RecordedMessage]) 
     assert "MSG: std_msgs/Header" in rec.msgdef("sensor_msgs/msg/PointCloud2")
 
 
-def test_sphere_points_match_groundtruth(messages: list[RecordedMessage]) -> None:
-    """The cloud, taken to world with tf_static, has points on the ground-truth sphere."""
-    ts = ros2_typestore()
-    tf = ts.deserialize_cdr(messages[0].cdr, "tf2_msgs/msg/TFMessage").transforms[0].transform
-    rot = Rotation.from_quat([tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w])
-    eye = np.array([tf.translation.x, tf.translation.y, tf.translation.z])
-    gt = {m.log_time_ns: ts.deserialize_cdr(m.cdr, m.msgtype).pose.position
-          for m in messages if m.topic == "/groundtruth/object"}
-    cloud = next(m for m in messages if m.topic == "/trisect/points")
-    pc = ts.deserialize_cdr(cloud.cdr, cloud.msgtype)
-    assert (pc.width, pc.point_step, pc.header.frame_id) == (POINTS, 12, "trisect_optical")
-    pts = rot.apply(np.frombuffer(pc.data, "<f4").reshape(-1, 3).astype(float)) + eye
-    c = gt[cloud.log_time_ns]
-    dist = np.linalg.norm(pts - [c.x, c.y, c.z], axis=1)
-    assert np.mean(np.abs(dist - RADIUS) < 0.01) > 0.4
-
-
-def test_writer_bytes_and_determinism(tmp_path: Path, synthetic: Path) -> None:
-    again = write_synthetic_recording(tmp_path / "again.mcap", SECONDS, RATE, POINTS, seed=7)
-    assert again.read_bytes() == synthetic.read_bytes()
-    other = write_synthetic_recording(tmp_path / "other.mcap", SECONDS, RATE, POINTS, seed=8)
-    assert other.read_bytes() != synthetic.read_bytes()
+def test_writer_bytes_and_determinism(tmp_path: Path, tank: Path) -> None:
+    again = make_recording(tmp_path / "again.mcap", SECONDS, seed=7)
+    assert again.read_bytes() == tank.read_bytes()
+    other = make_recording(tmp_path / "other.mcap", SECONDS, seed=8)
+    assert other.read_bytes() != tank.read_bytes()
     cdr = ros2_typestore().serialize_cdr(
         ros2_typestore().types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")
     with RecordingWriter(tmp_path / "w.mcap", {"k": "v"}) as w:
@@ -116,7 +98,7 @@ def test_mixed_json_channels_are_skipped(tmp_path: Path, messages: list[Recorded
 def test_truncated_mcap(tmp_path: Path) -> None:
     """Cut a 10 s recording (several 1 MiB chunks) at 60 %: the complete chunks are read."""
     full, cut = tmp_path / "full.mcap", tmp_path / "cut.mcap"
-    data = write_synthetic_recording(full, seconds=10.0, seed=1).read_bytes()
+    data = make_recording(full, seconds=4.0, seed=1).read_bytes()
     cut.write_bytes(data[: int(len(data) * 0.6)])
     expected = list(open_recording(full).messages())
     rec = open_recording(cut)
@@ -136,7 +118,7 @@ def test_truncated_mcap(tmp_path: Path) -> None:
         open_recording(short)
 
 
-def test_errors_name_the_file(tmp_path: Path, synthetic: Path) -> None:
+def test_errors_name_the_file(tmp_path: Path, tank: Path) -> None:
     text, empty = tmp_path / "notes.txt", tmp_path / "empty.mcap"
     text.write_text("hello, not a recording\n")
     empty.write_bytes(b"")

@@ -108,6 +108,10 @@ class RecordingWriter:
             self._writer.finish()
             self._file.close()
 
+    def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """Add another metadata record (for facts known only once the data is written)."""
+        self._writer.add_metadata(name, check_metadata(metadata))
+
     def _channel(self, topic: str, msgtype: str) -> int:
         if topic in self._channels:
             known, channel_id = self._channels[topic]
