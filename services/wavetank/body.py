@@ -10,10 +10,10 @@ inside that sphere. The body's axis points along the tether.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from wavegrasp.wavetank.checks import check_positive
 from wavegrasp.wavetank.waves import RHO, G, Sea
@@ -64,7 +64,7 @@ def _cylinder(name: str, radius: float, length: float, mass: float, cd: float, c
 
 OBJECTS: dict[str, ObjectSpec] = {
     # Cd and Ca of short cylinders in cross-flow fall with the aspect ratio (DNV-RP-C205).
-    "bottle": _cylinder("bottle", 0.032, 0.200, 0.028, 0.9, 0.8,
+    "bottle": _cylinder("bottle", 0.032, 0.160, 0.025, 0.9, 0.8,
                         "inverted 0.5 L PET bottle, sealed, air-filled; tethered at the cap"),
     "can_empty": _cylinder("can_empty", 0.033, 0.122, 0.015, 0.8, 0.6,
                            "355 ml aluminium can, empty and sealed; tethered at one end"),
@@ -76,9 +76,15 @@ OBJECTS: dict[str, ObjectSpec] = {
 
 
 def tether_quaternion(direction: np.ndarray) -> np.ndarray:
-    """Orientation (x, y, z, w) whose body z axis points along ``direction`` (shape (3,))."""
-    rot, _ = Rotation.align_vectors([direction], [[0.0, 0.0, 1.0]])
-    return rot.as_quat(canonical=True)
+    """Orientation (x, y, z, w) whose body z axis points along ``direction`` (shape (3,)).
+
+    The shortest rotation from +z; a tether pointing straight down turns about x.
+    """
+    n = direction / np.linalg.norm(direction)
+    if n[2] < -1 + 1e-12:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    q = np.array([-n[1], n[0], 0.0, 1.0 + n[2]])
+    return q / np.linalg.norm(q)
 
 
 @dataclass
@@ -107,18 +113,17 @@ class TetheredBody:
         """Hydrodynamic + buoyancy force on the body (N), tether excluded."""
         u, a = self.sea.kinematics(t, self.p)
         rel = u - self.v
-        return self._weight + self._fk * a + self._drag * np.linalg.norm(rel) * rel
+        return self._weight + self._fk * a + self._drag * math.sqrt(rel @ rel) * rel
 
     def step(self, t: float, dt: float) -> None:
         """Advance by ``dt`` seconds (semi-implicit Euler, tether as an exact constraint)."""
         acc = self.force(t) / self.inertial_mass
         r = self.p - self.anchor
-        dist = float(np.linalg.norm(r))
-        n = r / dist
-        taut = dist >= self.radius - 1e-9
+        n = r / math.sqrt(r @ r)
+        taut = math.sqrt(r @ r) >= self.radius - 1e-9
         if taut:
-            vt = self.v - np.dot(self.v, n) * n
-            tension = np.dot(acc, n) + np.dot(vt, vt) / self.radius  # per unit inertial mass
+            vt = self.v - (self.v @ n) * n
+            tension = acc @ n + (vt @ vt) / self.radius  # per unit inertial mass
             if tension > 0:
                 acc = acc - tension * n
             else:
@@ -128,12 +133,12 @@ class TetheredBody:
         self.v = self.v + acc * dt
         self.p = self.p + self.v * dt
         r = self.p - self.anchor
-        dist = float(np.linalg.norm(r))
+        dist = math.sqrt(r @ r)
         n = r / dist
         if taut or dist > self.radius:
             # Inextensible tether: back onto the sphere, no radial speed while it pulls.
             self.p = self.anchor + self.radius * n
-            radial = float(np.dot(self.v, n))
+            radial = float(self.v @ n)
             self.v = self.v - (radial if taut else max(0.0, radial)) * n
 
     @property

@@ -106,6 +106,7 @@ class Sea:
         self.ks = np.array([wavenumber(w, self.depth) for w in self.omegas])
         self._cos_b, self._sin_b = np.cos(self.directions), np.sin(self.directions)
         self._sinh_kh = np.sinh(self.ks * self.depth)
+        self._a_omega = self.amplitudes * self.omegas
 
     def _theta(self, t: float, x: float, y: float) -> np.ndarray:
         return self.ks * (x * self._cos_b + y * self._sin_b) - self.omegas * t + self.phases
@@ -123,17 +124,15 @@ class Sea:
 
         Above the still-water surface the flow is taken at the surface (no stretching).
         """
-        z = float(np.clip(p[2], 0.0, self.depth))
+        z = min(max(float(p[2]), 0.0), self.depth)
         th = self._theta(t, float(p[0]), float(p[1]))
-        aw = self._gain(t) * self.amplitudes * self.omegas
-        ch = np.cosh(self.ks * z) / self._sinh_kh
-        sh = np.sinh(self.ks * z) / self._sinh_kh
-        uh = aw * ch * np.cos(th)
-        duh = aw * self.omegas * ch * np.sin(th)
-        u = np.array([np.sum(uh * self._cos_b), np.sum(uh * self._sin_b),
-                      np.sum(aw * sh * np.sin(th))])
-        a = np.array([np.sum(duh * self._cos_b), np.sum(duh * self._sin_b),
-                      -np.sum(aw * self.omegas * sh * np.cos(th))])
+        cos_th, sin_th = np.cos(th), np.sin(th)
+        aw = self._gain(t) * self._a_omega
+        ch = aw * np.cosh(self.ks * z) / self._sinh_kh
+        sh = aw * np.sinh(self.ks * z) / self._sinh_kh
+        uh, duh = ch * cos_th, ch * self.omegas * sin_th
+        u = np.array([uh @ self._cos_b, uh @ self._sin_b, sh @ sin_th])
+        a = np.array([duh @ self._cos_b, duh @ self._sin_b, -(sh * self.omegas) @ cos_th])
         c, s = np.cos(self.sway.plane_angle(t)), np.sin(self.sway.plane_angle(t))
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         su, sa = self.sway.velocity_acceleration(t)
