@@ -21,6 +21,7 @@ from wavegrasp.schemas.messages import (
     Hop,
     JointSample,
     MotionPrediction,
+    ObjectMesh,
     ObjectObservation,
     PlayerStatus,
     Pose,
@@ -34,6 +35,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
     m.__name__: m
     for m in (
         ObjectObservation,
+        ObjectMesh,
         MotionPrediction,
         GraspPlan,
         GateDecision,
@@ -49,6 +51,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
 KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/clock": Clock,
     "wavegrasp/perception/object": ObjectObservation,
+    "wavegrasp/perception/mesh": ObjectMesh,
     "wavegrasp/predictor/prediction": MotionPrediction,
     "wavegrasp/planner/plan": GraspPlan,
     "wavegrasp/gate/decision": GateDecision,
@@ -92,7 +95,7 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 __all__ = [
     "ArmState", "CartesianSample", "Clock", "FrameAck", "GateDecision", "GraspOutcome",
     "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
-    "MotionPrediction", "ObjectObservation", "PlayerStatus", "Pose", "PredictionSample",
-    "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key", "health_key", "model_for_key",
-    "stats_key",
+    "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
+    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
+    "health_key", "model_for_key", "stats_key",
 ]

@@ -65,6 +65,29 @@ class ObjectObservation(Message):
     quality: float = Field(0.0, ge=0.0, le=1.0, description="0 = unusable, 1 = best")
     sigma_m: float | None = Field(None, description="1-sigma centroid uncertainty, metres")
     reason: str | None = None
+    shape: Literal["sphere", "cylinder"] | None = None
+    axis: Vec3 | None = Field(None, description="unit symmetry axis, world (cylinder)")
+    radius_m: float | None = None
+    length_m: float | None = None
+    fit_rms_m: float | None = Field(None, description="RMS distance of points to the shape")
+
+
+class ObjectMesh(Message):
+    """``wavegrasp/perception/mesh``: the object's closed mesh, accumulated over many frames.
+
+    Vertices are little-endian float32 x, y, z in metres in the object's own frame (origin at
+    the volume centroid, z along the symmetry axis); triangles are little-endian uint32 vertex
+    indices, counter-clockwise seen from outside; both base64-encoded.
+    """
+
+    header: Header
+    shape: Literal["sphere", "cylinder"]
+    vertices_b64: str
+    triangles_b64: str
+    vertex_count: int
+    triangle_count: int
+    volume_m3: float
+    frames: int = Field(description="camera frames accumulated into the mesh")
 
 
 class PredictionSample(Message):
@@ -192,4 +215,5 @@ class ServiceStats(Message):
     received: dict[str, int] = Field(default_factory=dict)
     bad: dict[str, int] = Field(default_factory=dict)
     last_bad_reason: dict[str, str] = Field(default_factory=dict)
+    counters: dict[str, int] = Field(default_factory=dict, description="service-specific counts")
     uptime_s: float = 0.0

@@ -18,9 +18,8 @@ import time
 from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
-from rosbags.typesys import Stores, get_typestore
 
-from wavegrasp.recording_io.writer import ros2_msgdef
+from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -66,7 +65,7 @@ class Recorder(Service):
         self.writer.start(profile="ros2", library="wavegrasp recorder")
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[str, int] = {}
-        self._typestore = get_typestore(Stores.ROS2_HUMBLE)
+        self._typestore = ros2_typestore()
         self._last_flush = time.monotonic()
         self._wrote_metadata = False
         self.frames = 0

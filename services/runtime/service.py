@@ -12,6 +12,7 @@ import queue
 import signal
 import threading
 import time
+from collections import Counter
 
 from wavegrasp.runtime.bus import Bus
 from wavegrasp.runtime.clock import RecordingClock
@@ -39,6 +40,7 @@ class Service:
         self.bus = bus if bus is not None else Bus(settings)
         self.clock = RecordingClock(wall=settings.clock == "wall")
         self.stopping = threading.Event()
+        self.counters: Counter[str] = Counter()  # service-specific, published with the stats
         self.exit_code = 0
         self._started = time.monotonic()
         self._next_stats = 0.0
@@ -68,7 +70,7 @@ class Service:
         self.bus.publish(stats_key(self.name), ServiceStats(
             header=new_header(self.name, self._stats_seq, self.clock.now_ns()),
             service=self.name, subscriptions=list(b.subscriptions), received=dict(b.received),
-            bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason),
+            bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason), counters=dict(self.counters),
             uptime_s=time.monotonic() - self._started))
 
     def drain(self, max_items: int | None = None) -> int:

@@ -1,0 +1,1 @@
+"""``wavegrasp perception``: from raw underwater point clouds to the object's centroid and mesh."""

@@ -1,0 +1,140 @@
+"""``wavegrasp perception``: ``trisect/points`` + ``tf_static`` -> the object's centroid and mesh.
+
+Publishes one ``wavegrasp/perception/object`` per camera frame: the volume centroid in
+``world`` with its uncertainty, or no centroid and the reason (empty cloud, unknown frame, no
+object...). Every ``mesh_period_s`` it rebuilds the object's closed mesh from the points of all
+frames so far, on a worker thread off the per-frame path, and publishes it on
+``wavegrasp/perception/mesh``. It never reads the ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+
+from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, encode_mesh, mesh_volume
+from wavegrasp.perception.pipeline import FrameResult, Perception
+from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_tf
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import CdrAttachment, new_header
+from wavegrasp.schemas import Header, Hop, ObjectMesh, ObjectObservation, Vec3
+
+log = logging.getLogger("wavegrasp.perception")
+OBJECT_KEY = "wavegrasp/perception/object"
+MESH_KEY = "wavegrasp/perception/mesh"
+
+
+class PerceptionSettings(Settings):
+    mesh_period_s: float = 2.0
+    mesh_min_frames: int = 10
+
+
+def object_rotation(axis: np.ndarray) -> np.ndarray:
+    """R_world_object (3, 3) with z along ``axis``; x as close to world x as possible."""
+    z = axis / np.linalg.norm(axis)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([0.0, 1.0, 0.0]) - z[1] * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+class PerceptionService(Service):
+    def __init__(self, settings: PerceptionSettings, bus: Bus | None = None) -> None:
+        super().__init__(settings, bus)
+        self.cfg = settings
+        self.perception = Perception()
+        self.tf = StaticTransforms()
+        self.accumulator = MeshAccumulator()
+        self._mesh_job: Future | None = None
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh")
+        self._next_mesh_frame = settings.mesh_min_frames
+        self._seq = 0
+        self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
+        self.bus.subscribe("trisect/points", self.on_points)
+
+    def header(self, d: Delivery, stamp_ns: int) -> Header:
+        """Trace: the source's publish time (CDR attachment), then this service's receipt."""
+        att = CdrAttachment.decode(d.attachment)
+        self._seq += 1
+        hops = [Hop(service="source", recv_ns=att.source_ns, sent_ns=att.source_ns)] if att else []
+        return Header(seq=att.seq if att else self._seq, stamp_ns=stamp_ns, frame_id="world",
+                      trace=[*hops, Hop(service=self.name, recv_ns=d.recv_ns)])
+
+    def on_points(self, d: Delivery) -> None:
+        try:
+            cloud = decode_points(d.payload)
+        except ValueError as exc:
+            self.publish_missing(new_header(self.name, 0, self.clock.now_ns()), f"bad cloud: {exc}")
+            raise
+        header = self.header(d, cloud.stamp_ns)
+        if cloud.dropped_nonfinite:
+            self.counters["nonfinite_points"] += cloud.dropped_nonfinite
+        if not len(cloud.points):
+            return self.publish_missing(header, "empty cloud")
+        try:
+            T = self.tf.lookup("world", cloud.frame_id)
+        except ValueError as exc:
+            return self.publish_missing(header, f"unknown frame: {exc}")
+        result = self.perception.process(cloud.points, T, cloud.stamp_ns)
+        if result.fit is None:
+            return self.publish_missing(header, result.reason or "no object")
+        self.publish_observation(header, result, len(cloud.points))
+        if self.perception.prior is not None:
+            self.accumulator.add(result.points, result.fit.centre, object_rotation(result.fit.axis))
+
+    def publish_missing(self, header: Header, reason: str) -> None:
+        self.counters[f"missing: {reason.split(':')[0]}"] += 1
+        self.bus.publish(OBJECT_KEY, ObjectObservation(header=header, reason=reason))
+
+    def publish_observation(self, header: Header, result: FrameResult, n_points: int) -> None:
+        fit = result.fit
+        assert fit is not None
+        self.counters["observed"] += 1
+        quality = min(1.0, len(result.points) / 150) * min(1.0, 0.003 / max(fit.rms, 1e-6))
+        self.bus.publish(OBJECT_KEY, ObjectObservation(
+            header=header, centroid=Vec3(x=fit.centre[0], y=fit.centre[1], z=fit.centre[2]),
+            points_used=len(result.points), quality=quality, sigma_m=fit.sigma,
+            shape=fit.shape, axis=Vec3(x=fit.axis[0], y=fit.axis[1], z=fit.axis[2]),
+            radius_m=fit.radius, length_m=fit.length, fit_rms_m=fit.rms))
+
+    def on_tick(self) -> None:
+        job = self._mesh_job
+        if job is not None and job.done():
+            self._mesh_job = None
+            self.publish_mesh(*job.result())
+        if job is None and self.accumulator.frames >= self._next_mesh_frame:
+            self._next_mesh_frame = self.accumulator.frames + int(10 * self.cfg.mesh_period_s)
+            acc = self.accumulator
+            points, weights, frames = acc.points_object(), acc.counts(), acc.frames
+            self._mesh_job = self._executor.submit(
+                lambda: (*build_mesh(points, weights=weights), frames))
+
+    def publish_mesh(self, vertices: np.ndarray, triangles: np.ndarray, frames: int) -> None:
+        prior = self.perception.prior
+        encoded = encode_mesh(vertices, triangles)
+        self.bus.publish(MESH_KEY, ObjectMesh(
+            header=new_header(self.name, frames, self.clock.now_ns(), frame_id="object"),
+            shape=prior.shape if prior else "sphere", volume_m3=mesh_volume(vertices, triangles),
+            frames=frames, **encoded))
+        self.counters["meshes"] += 1
+
+    def on_stop(self) -> None:
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argparse.ArgumentParser(prog="wavegrasp perception", description=__doc__).parse_args(argv)
+    try:
+        settings = PerceptionSettings.from_env("perception")
+    except ValueError as exc:
+        print(f"wavegrasp perception: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return PerceptionService(settings).run()

@@ -1,0 +1,192 @@
+"""Per-frame perception: from a raw camera cloud to the tracked object's volume centroid.
+
+Acquisition (no track yet): everything in the workspace, seabed plane removed (RANSAC), marine
+snow and the thin tether removed by surface density, clustered, and the most object-like
+cluster taken. Tracking: only points near where the track predicts the object are looked at,
+which keeps the hot path to a few hundred points; the cluster nearest the prediction is the
+object (continuity, not the biggest blob). The centroid comes from fitting the object's shape
+(sphere or cylinder), learnt over the first frames and then held fixed, so the camera's
+one-sided view does not pull it towards the camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from pydantic import BaseModel, Field
+from scipy.spatial import cKDTree
+
+from wavegrasp.perception.fit import ShapeFit, check_points, fit_shape
+
+
+class PerceptionConfig(BaseModel):
+    """Tuning of the pipeline. Lengths metres in ``world``."""
+
+    workspace_min: tuple[float, float, float] = (-1.5, -1.5, -0.5)
+    workspace_max: tuple[float, float, float] = (1.5, 1.5, 2.0)
+    seabed_distance_m: float = Field(0.02, description="points this close to the seabed go")
+    density_radius_spacings: float = Field(3.5, description="neighbourhood, in point spacings")
+    min_neighbours: int = Field(14, description="fewer: snow or tether, not a surface")
+    cluster_eps_spacings: float = 2.5
+    object_size_m: tuple[float, float] = (0.03, 0.40)
+    min_object_points: int = 30
+    gate_m: float = Field(0.10, description="search radius beyond the object's own size")
+    lost_after_frames: int = 5
+    learn_frames: int = 15
+    seabed_refit_frames: int = 100
+
+
+@dataclass
+class FrameResult:
+    """One frame's outcome: the fit (None if no object) and the object's points in world."""
+
+    fit: ShapeFit | None
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    reason: str | None = None
+
+
+def to_world(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """points : array, shape (n, 3), frame A; T : T_world_A (4, 4) -> shape (n, 3), world."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def fit_seabed(points: np.ndarray, viewpoint: np.ndarray) -> np.ndarray | None:
+    """Plane (a, b, c, d), unit normal towards the camera, of the largest plane; None if weak."""
+    if len(points) < 500:
+        return None
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    pcd = pcd.voxel_down_sample(0.02)
+    if len(pcd.points) < 100:
+        return None
+    o3d.utility.random.seed(0)  # RANSAC: the same cloud gives the same plane
+    plane, inliers = pcd.segment_plane(0.01, 3, 200)
+    if len(inliers) < 0.3 * len(pcd.points):
+        return None
+    plane = np.asarray(plane) / np.linalg.norm(plane[:3])
+    return -plane if plane[:3] @ viewpoint + plane[3] < 0 else plane
+
+
+def surface_points(points: np.ndarray, cfg: PerceptionConfig) -> tuple[np.ndarray, float]:
+    """Keep points on surfaces (dense neighbourhoods): drops snow specks and the thin tether.
+
+    Returns the kept points and the point spacing (median nearest-neighbour distance).
+    """
+    if len(points) < cfg.min_object_points:
+        return points[:0], 0.0
+    tree = cKDTree(points)
+    spacing = float(np.median(tree.query(points, k=2)[0][:, 1]))
+    counts = tree.query_ball_point(points, cfg.density_radius_spacings * spacing,
+                                   return_length=True)
+    return points[counts >= cfg.min_neighbours], spacing
+
+
+def clusters(points: np.ndarray, eps: float, min_size: int) -> list[np.ndarray]:
+    """Euclidean clusters (open3d DBSCAN) of at least ``min_size`` points, largest first."""
+    if len(points) < min_size:
+        return []
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    labels = np.asarray(pcd.cluster_dbscan(eps, 4))
+    found = [points[labels == k] for k in range(labels.max() + 1)]
+    return sorted((c for c in found if len(c) >= min_size), key=len, reverse=True)
+
+
+class Perception:
+    """Tracks one object through a stream of clouds. Drive it with :meth:`process`."""
+
+    def __init__(self, cfg: PerceptionConfig | None = None) -> None:
+        self.cfg = cfg or PerceptionConfig()
+        self.seabed: np.ndarray | None = None
+        self.track: np.ndarray | None = None  # last centroid, world
+        self.velocity = np.zeros(3)
+        self.last_stamp_ns = 0
+        self.misses = 0
+        self.prior: ShapeFit | None = None
+        self.learnt: list[ShapeFit] = []
+        self.frames = 0
+
+    def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
+        """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
+        self.frames += 1
+        eye = T_world_cam[:3, 3]
+        if self.track is None:
+            candidate = self._acquire(points, T_world_cam, eye)
+        else:
+            candidate = self._follow(points, T_world_cam, stamp_ns)
+        if isinstance(candidate, str):
+            return self._miss(candidate)
+        try:
+            check_points(candidate, self.cfg.min_object_points)
+            fit = fit_shape(candidate, eye, self.prior)
+        except ValueError as exc:
+            return self._miss(f"shape fit failed: {exc}")
+        self._update_track(fit, stamp_ns)
+        return FrameResult(fit, candidate[fit.inliers])
+
+    def _miss(self, reason: str) -> FrameResult:
+        self.misses += 1
+        if self.misses >= self.cfg.lost_after_frames:
+            self.track = None
+        return FrameResult(None, reason=reason)
+
+    def _acquire(self, points: np.ndarray, T: np.ndarray, eye: np.ndarray) -> np.ndarray | str:
+        cfg = self.cfg
+        world = to_world(points, T)
+        inside = np.all((world >= cfg.workspace_min) & (world <= cfg.workspace_max), axis=1)
+        world = world[inside]
+        if self.seabed is None or self.frames % cfg.seabed_refit_frames == 0:
+            self.seabed = fit_seabed(world, eye) if len(world) else None
+        world = self._above_seabed(world)
+        dense, spacing = surface_points(world, cfg)
+        lo, hi = cfg.object_size_m
+        for c in clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
+                          cfg.min_object_points):
+            if lo <= np.linalg.norm(np.ptp(c, axis=0)) <= hi * 1.5:
+                return c
+        return "no object-like cluster in the workspace"
+
+    def _follow(self, points: np.ndarray, T: np.ndarray, stamp_ns: int) -> np.ndarray | str:
+        cfg = self.cfg
+        dt = max(0.0, (stamp_ns - self.last_stamp_ns) * 1e-9)
+        predicted = self.track + self.velocity * min(dt, 0.5)
+        size = self.prior.length if self.prior is not None else cfg.object_size_m[1] / 2
+        radius = size / 2 + cfg.gate_m
+        centre_cam = (predicted - T[:3, 3]) @ T[:3, :3]  # predicted centre in the camera frame
+        near = np.einsum("ij,ij->i", points - centre_cam, points - centre_cam) < radius**2
+        world = self._above_seabed(to_world(points[near], T))
+        dense, spacing = surface_points(world, cfg)
+        found = clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
+                         cfg.min_object_points)
+        if not found:
+            return "object not found near its track"
+        return min(found, key=lambda c: np.linalg.norm(c.mean(axis=0) - predicted))
+
+    def _above_seabed(self, world: np.ndarray) -> np.ndarray:
+        if self.seabed is None or not len(world):
+            return world
+        return world[world @ self.seabed[:3] + self.seabed[3] > self.cfg.seabed_distance_m]
+
+    def _update_track(self, fit: ShapeFit, stamp_ns: int) -> None:
+        if self.track is not None and stamp_ns > self.last_stamp_ns:
+            dt = (stamp_ns - self.last_stamp_ns) * 1e-9
+            self.velocity = 0.5 * self.velocity + 0.5 * (fit.centre - self.track) / dt
+        else:
+            self.velocity = np.zeros(3)
+        self.track, self.last_stamp_ns, self.misses = fit.centre, stamp_ns, 0
+        if self.prior is None:
+            self.learnt.append(fit)
+            if len(self.learnt) >= self.cfg.learn_frames:
+                self.prior = learnt_shape(self.learnt)
+
+
+def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
+    """The shape most fits agreed on, with the median of their radii and lengths."""
+    shapes = [f.shape for f in fits]
+    shape = max(set(shapes), key=shapes.count)
+    same = [f for f in fits if f.shape == shape]
+    best = min(same, key=lambda f: f.rms)
+    radius = float(np.median([f.radius for f in same]))
+    length = 2 * radius if shape == "sphere" else float(np.median([f.length for f in same]))
+    return ShapeFit(shape=shape, centre=best.centre, axis=best.axis, radius=radius,
+                    length=length, rms=best.rms, inliers=best.inliers, sigma=best.sigma)

@@ -1,0 +1,123 @@
+"""ROS messages as numpy: point clouds, static transforms and poses from their CDR bytes.
+
+Every decoder raises ValueError naming what is wrong (field, size, frame), never a library's
+own exception, so a service can count the message as bad and go on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.recording_io.typestore import ros2_typestore
+
+FLOAT32, FLOAT64 = 7, 8  # sensor_msgs/PointField datatypes
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """points : array, shape (n, 3), float32, metres, frame ``frame_id``; stamp_ns : int."""
+
+    points: np.ndarray
+    frame_id: str
+    stamp_ns: int
+    dropped_nonfinite: int
+
+
+def _deserialize(cdr: bytes, msgtype: str):
+    try:
+        return ros2_typestore().deserialize_cdr(cdr, msgtype)
+    except Exception as exc:  # rosbags raises several types on malformed bytes
+        raise ValueError(f"not a valid {msgtype}: {exc}") from None
+
+
+def stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def decode_points(cdr: bytes) -> Cloud:
+    """x, y, z of a ``sensor_msgs/msg/PointCloud2``; points with NaN or inf are dropped."""
+    msg = _deserialize(cdr, "sensor_msgs/msg/PointCloud2")
+    fields = {f.name: f for f in msg.fields}
+    missing = [n for n in "xyz" if n not in fields]
+    if missing:
+        raise ValueError(f"PointCloud2 has no field {', '.join(missing)} "
+                         f"(fields: {', '.join(fields) or 'none'})")
+    kinds = {fields[n].datatype for n in "xyz"}
+    if not kinds <= {FLOAT32, FLOAT64} or len(kinds) != 1:
+        raise ValueError(f"PointCloud2 x, y, z must be float32 or float64, got types {kinds}")
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    if n and (step <= 0 or len(msg.data) < n * step):
+        raise ValueError(f"PointCloud2 data has {len(msg.data)} bytes, "
+                         f"{msg.width}x{msg.height} points of {step} bytes need {n * step}")
+    base = ">f" if msg.is_bigendian else "<f"
+    size = 4 if kinds == {FLOAT32} else 8
+    dtype = np.dtype({"names": list("xyz"), "formats": [f"{base}{size}"] * 3,
+                      "offsets": [fields[c].offset for c in "xyz"], "itemsize": max(step, 1)})
+    raw = np.frombuffer(msg.data, dtype=dtype, count=n) if n else np.zeros(0, dtype)
+    pts = np.stack([raw["x"], raw["y"], raw["z"]], axis=1).astype(np.float32, copy=False)
+    finite = np.isfinite(pts).all(axis=1)
+    return Cloud(pts[finite], msg.header.frame_id, stamp_ns(msg.header),
+                 int(n - finite.sum()))
+
+
+def transform_matrix(translation, rotation) -> np.ndarray:
+    """4x4 pose from a geometry_msgs translation/position and quaternion."""
+    T = np.eye(4)
+    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=float)
+    if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1) > 1e-3:
+        raise ValueError(f"quaternion {q} is not a unit quaternion")
+    T[:3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:3, 3] = [translation.x, translation.y, translation.z]
+    if not np.isfinite(T).all():
+        raise ValueError("transform has NaN or inf")
+    return T
+
+
+def decode_tf(cdr: bytes) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child (4, 4)) for each transform of a ``tf2_msgs/msg/TFMessage``."""
+    msg = _deserialize(cdr, "tf2_msgs/msg/TFMessage")
+    return [(t.header.frame_id, t.child_frame_id,
+             transform_matrix(t.transform.translation, t.transform.rotation))
+            for t in msg.transforms]
+
+
+def decode_pose(cdr: bytes) -> tuple[np.ndarray, str, int]:
+    """T_frame_body (4, 4), frame_id and stamp of a ``geometry_msgs/msg/PoseStamped``."""
+    msg = _deserialize(cdr, "geometry_msgs/msg/PoseStamped")
+    return (transform_matrix(msg.pose.position, msg.pose.orientation), msg.header.frame_id,
+            stamp_ns(msg.header))
+
+
+class StaticTransforms:
+    """The latest static transform of each child frame (frames form a tree under ``world``)."""
+
+    def __init__(self) -> None:
+        self._parent: dict[str, tuple[str, np.ndarray]] = {}
+
+    def update(self, transforms: list[tuple[str, str, np.ndarray]]) -> None:
+        for parent, child, T in transforms:
+            self._parent[child] = (parent, T)
+
+    def _to_root(self, frame: str) -> tuple[str, np.ndarray]:
+        """The tree's root above ``frame`` and T_root_frame (4, 4)."""
+        T, seen = np.eye(4), {frame}
+        while frame in self._parent:
+            frame, T_parent = self._parent[frame]
+            T = T_parent @ T
+            if frame in seen:
+                raise ValueError(f"transform loop through frame {frame}")
+            seen.add(frame)
+        return frame, T
+
+    def lookup(self, target: str, source: str) -> np.ndarray:
+        """T_target_source (4, 4); ValueError naming the frame if it is not known."""
+        root_t, T_rt = self._to_root(target)
+        root_s, T_rs = self._to_root(source)
+        if root_t != root_s:
+            raise ValueError(f"no transform from {source!r} to {target!r} (known frames: "
+                             f"{', '.join(sorted({*self._parent, root_s, root_t}))})")
+        return np.linalg.inv(T_rt) @ T_rs
