@@ -7,6 +7,7 @@ one; otherwise it generates the sample deterministically into a cache on first u
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 from pathlib import Path
@@ -33,19 +34,23 @@ def default_recording() -> Path:
     return cached_recording(**SAMPLE)
 
 
-def cached_recording(wave: int, object: str, seconds: float, seed: int = 0,
-                     irregular: bool = False) -> Path:
-    """A wave-tank recording from the cache, generated (with a progress bar) on first use."""
+def cached_recording(**config: object) -> Path:
+    """A wave-tank recording from the cache, generated (with a progress bar) on first use.
+
+    ``config`` holds :class:`~wavegrasp.wavetank.record.RecordConfig`'s fields (wave, object,
+    seconds, seed, ...); the file name says the main ones and a hash of all of them.
+    """
     from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig, generate
 
-    sea = "jonswap" if irregular else "regular"
-    name = f"wave{wave}-{object}-{sea}-{seconds:g}s-seed{seed}-v{GENERATOR_VERSION}.mcap"
+    cfg = RecordConfig(**config)
+    digest = hashlib.sha256(repr(sorted(config.items())).encode()).hexdigest()[:8]
+    name = (f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
+            f"-v{GENERATOR_VERSION}-{digest}.mcap")
     path = cache_dir() / "recordings" / name
     if not path.exists():
         print(f"generating {path} (first use only)", file=sys.stderr)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_suffix(".partial")
-        generate(RecordConfig(wave=wave, object=object, seconds=seconds, seed=seed,
-                              irregular=irregular), partial, progress=True)
+        generate(cfg, partial, progress=sys.stderr.isatty())
         partial.replace(path)
     return path

@@ -177,6 +177,17 @@ def _end(h, rho, R, thr, sign, wall_end, h_mid, ok, wall_var) -> tuple[float, fl
     return float(hc[keep].mean()), float(hc[keep].var() / keep.sum()) + 1e-8
 
 
+def _partial_view(top: float, v_top: float, bottom: float, v_bot: float, wall_var: float,
+                  length: float) -> tuple[float, float, float]:
+    """Axial centre, its variance and length when the seen extent is shorter than ``length``."""
+    top_cap, bottom_cap = v_top != wall_var, v_bot != wall_var
+    if top_cap and not bottom_cap:
+        return top - length / 2, v_top, length
+    if bottom_cap and not top_cap:
+        return bottom + length / 2, v_bot, length
+    return (top + bottom) / 2, ((length - (top - bottom)) / 2) ** 2, length
+
+
 def fit_cylinder(points: np.ndarray, viewpoint: np.ndarray, radius: float | None = None,
                  length: float | None = None, axis_hint: np.ndarray | None = None) -> ShapeFit:
     """Fit a finite cylinder to points seen from `viewpoint`; sizes in metres, None = free.
@@ -219,7 +230,11 @@ def fit_cylinder(points: np.ndarray, viewpoint: np.ndarray, radius: float | None
     ok, wall_var = inl.copy(), spacing**2 + float(np.mean(r**2)) * view_a**2
     (top, v_top), (bottom, v_bot) = (_end(h, rho, R, thr, sign, end, hw[len(hw) // 2], ok, wall_var)
                                      for sign, end in ((1.0, hw[-1]), (-1.0, hw[0])))
-    if length is not None:  # the variance-weighted mean of the two ends' estimates
+    if length is not None and top - bottom < length - max(0.008, 3 * thr):
+        # Part of the object is hidden (a dropout, the frame's edge): a seen cap is a true end,
+        # an edge of the hole is not. With no cap, the centre could lie anywhere along the gap.
+        hc, v_axial, L = _partial_view(top, v_top, bottom, v_bot, wall_var, float(length))
+    elif length is not None:  # the variance-weighted mean of the two ends' estimates
         hc = (v_bot * (top - length / 2) + v_top * (bottom + length / 2)) / (v_top + v_bot)
         v_axial, L = v_top * v_bot / (v_top + v_bot), float(length)
     else:

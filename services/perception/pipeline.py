@@ -35,6 +35,7 @@ class PerceptionConfig(BaseModel):
     gate_m: float = Field(0.10, description="search radius beyond the object's own size")
     lost_after_frames: int = 5
     learn_frames: int = 15
+    max_sigma_m: float = Field(0.005, description="a less certain centroid is not reported")
     seabed_refit_frames: int = 100
 
 
@@ -121,6 +122,10 @@ class Perception:
             fit = fit_shape(candidate, eye, self.prior)
         except ValueError as exc:
             return self._miss(f"shape fit failed: {exc}")
+        if fit.sigma > self.cfg.max_sigma_m:
+            return self._miss(f"partial view: centroid uncertain by {fit.sigma * 1e3:.0f} mm")
+        if self.prior is None and not consistent_with(fit, self.learnt):
+            return self._miss("partial view: the shape differs from the frames before")
         self._update_track(fit, stamp_ns)
         return FrameResult(fit, candidate[fit.inliers])
 
@@ -178,6 +183,21 @@ class Perception:
             self.learnt.append(fit)
             if len(self.learnt) >= self.cfg.learn_frames:
                 self.prior = learnt_shape(self.learnt)
+
+
+def consistent_with(fit: ShapeFit, fits: list[ShapeFit], tolerance: float = 0.1) -> bool:
+    """While the shape is being learnt: do ``fit``'s sizes match the median of earlier fits?
+
+    A free fit of a partly hidden cylinder is short, and its centre is off by half of what is
+    hidden; such a frame is not reported. The first three fits are taken as they come.
+    """
+    if len(fits) < 3:
+        return True
+    for size in ("radius", "length"):
+        median = float(np.median([getattr(f, size) for f in fits]))
+        if abs(getattr(fit, size) - median) > max(0.01, tolerance * median):
+            return False
+    return True
 
 
 def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
