@@ -25,6 +25,7 @@ from pathlib import Path
 
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
+from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import PlayerStatus, ServiceStats
@@ -168,7 +169,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("recording", nargs="?", type=Path,
                         help="MCAP, ROS 1 .bag or ROS 2 bag folder (default: the sample)")
     parser.add_argument("--pace", choices=["realtime", "fast", "lockstep"], default="realtime")
-    parser.add_argument("--predictor", help="motion model for the predictor service")
+    parser.add_argument("--predictor", choices=MODELS,
+                        help=f"motion model for the predictor service (default {DEFAULT_MODEL})")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<date-time>)")
     parser.add_argument("--compose", type=Path, help="compose file (default: docker-compose.yml)")
     return parser.parse_args(argv)

@@ -11,6 +11,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "player": ("wavegrasp.player.main", "replay a recording (MCAP, ROS 1 bag, ROS 2 bag)"),
     "recorder": ("wavegrasp.recorder.main", "record every message on the bus to run.mcap"),
     "perception": ("wavegrasp.perception.main", "point clouds -> the object's centroid and mesh"),
+    "predictor": ("wavegrasp.predictor.main", "centroids -> the object's motion a period ahead"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
 }

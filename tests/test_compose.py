@@ -43,8 +43,9 @@ def test_launcher_reads_services_in_dependency_order() -> None:
     assert services["player"].command[2] == "/data/x.mcap"
     assert services["player"].command[4] == "realtime"  # the default applies when unset
     assert services["player"].labels["wavegrasp.ends-run"] == "true"
-    assert services["player"].depends_on == {"recorder": "service_healthy",
-                                             "perception": "service_healthy"}
+    assert services["player"].depends_on == {
+        "recorder": "service_healthy", "perception": "service_healthy",
+        "predictor": "service_healthy"}
 
 
 def test_interpolation_follows_compose_rules() -> None:

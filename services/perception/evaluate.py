@@ -54,12 +54,30 @@ HEADER = ("| recording | observed | RMSE (mm) | mean bias x, y, z (norm) (mm) | 
           "| median (ms) | p99 (ms) |\n|---|---|---|---|---|---|---|")
 
 
-def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:
+@dataclass
+class Track:
+    """What perception saw in a recording, beside the truth.
+
+    stamps_ns : array, shape (n,), camera frames; centres : array, shape (n, 3), metres, world,
+    NaN where no centroid was reported; times_ms, points : per frame; truth_ns, truth : the
+    ground truth, shape (m,) and (m, 3).
+    """
+
+    path: Path
+    stamps_ns: np.ndarray
+    centres: np.ndarray
+    times_ms: np.ndarray
+    points: np.ndarray
+    truth_ns: np.ndarray
+    truth: np.ndarray
+
+
+def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
+    """Run the pipeline over every camera frame of ``path``, timing each frame."""
     perception = Perception(cfg)
     tf = StaticTransforms()
     truth: dict[int, np.ndarray] = {}
-    frames, errors, times, sizes = 0, [], [], []
-    pending: list[tuple[int, np.ndarray | None]] = []
+    stamps, centres, times, sizes = [], [], [], []
     for m in open_recording(path).messages():
         if m.topic == "/tf_static":
             tf.update(decode_tf(m.cdr))
@@ -67,19 +85,28 @@ def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:
             T, _, stamp = decode_pose(m.cdr)
             truth[stamp] = T[:3, 3]
         else:
-            frames += 1
             start = time.perf_counter()
             cloud = decode_points(m.cdr)
             result = perception.process(cloud.points, tf.lookup("world", cloud.frame_id),
                                         cloud.stamp_ns)
             times.append((time.perf_counter() - start) * 1e3)
             sizes.append(len(cloud.points))
-            pending.append((cloud.stamp_ns, None if result.fit is None else result.fit.centre))
-    for stamp, centre in pending:
-        if centre is not None and stamp in truth:
-            errors.append(centre - truth[stamp])
-    return Evaluation(Path(path), frames, np.reshape(errors, (-1, 3)), np.asarray(times),
-                      np.asarray(sizes))
+            stamps.append(cloud.stamp_ns)
+            centres.append(np.full(3, np.nan) if result.fit is None else result.fit.centre)
+    truth_ns = np.array(sorted(truth))
+    return Track(Path(path), np.array(stamps), np.reshape(centres, (-1, 3)), np.array(times),
+                 np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]))
+
+
+def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:
+    """Centroid errors against the ground truth at each frame's stamp."""
+    track = run_perception(path, cfg)
+    truth = dict(zip(track.truth_ns.tolist(), track.truth, strict=True))
+    seen = ~np.isnan(track.centres[:, 0])
+    errors = [c - truth[s] for s, c in zip(track.stamps_ns[seen].tolist(), track.centres[seen],
+                                           strict=True) if s in truth]
+    return Evaluation(Path(path), len(track.stamps_ns), np.reshape(errors, (-1, 3)),
+                      track.times_ms, track.points)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,6 @@
+"""``wavegrasp predictor``: where the object will be, from now to at least one wave period ahead.
+
+Models are plain classes with ``update(t_s, position) -> Forecast | None``: ``linear`` (the
+paper's constant-velocity baseline), ``harmonic`` (the paper's equations 1-7) and ``blend`` (the
+default: direct multi-step regression on lagged positions combined with the harmonic model).
+"""

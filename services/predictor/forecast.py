@@ -1,0 +1,95 @@
+"""What every motion model returns, and how its uncertainty is measured.
+
+Times are seconds on the recording's clock relative to the predictor's epoch; positions metres
+in ``world``. A forecast's sigma is not a model covariance: it is the RMS of the errors this
+model actually made, recently, at the same lead time (:class:`ErrorTracker`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def check_position(p: np.ndarray) -> np.ndarray:
+    """position : array, shape (3,), metres, finite; ValueError naming the problem otherwise."""
+    p = np.asarray(p, dtype=float)
+    if p.shape != (3,):
+        raise ValueError(f"position must have shape (3,), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"position has NaN or inf: {p}")
+    return p
+
+
+@dataclass
+class Forecast:
+    """t0 : seconds; leads : array, shape (m,), seconds after t0 (leads[0] = 0: now);
+    positions : array, shape (m, 3), metres, world; sigma : array, shape (m,), metres (NaN
+    while no error has been measured at that lead); period_s : the motion's period."""
+
+    t0: float
+    leads: np.ndarray
+    positions: np.ndarray
+    sigma: np.ndarray
+    period_s: float
+    parameters: dict[str, float] = field(default_factory=dict)
+    warm: bool = False
+
+    def at(self, t: float) -> np.ndarray:
+        """Position at time ``t`` (linear between samples), shape (3,)."""
+        lead = t - self.t0
+        return np.array([np.interp(lead, self.leads, self.positions[:, i]) for i in range(3)])
+
+
+class ErrorTracker:
+    """Recent RMS of a model's 3-D error per lead time, measured against later observations.
+
+    Every forecast is kept until its last lead has passed; each new observation is compared
+    with what each kept forecast said for that moment, and the squared error goes into an
+    exponential average for its lead bin (``dt`` wide). ``memory`` is the averaging length in
+    samples per bin. Forecasts must share the lead grid ``k * dt``, k = 0..n_leads-1.
+    """
+
+    def __init__(self, dt: float, n_leads: int, memory: int = 60) -> None:
+        self.dt, self.n_leads, self.alpha = dt, n_leads, 1.0 / memory
+        self.mse = np.full(n_leads, np.nan)
+        self.count = np.zeros(n_leads, dtype=int)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the kept forecasts (a restart); the measured errors stay."""
+        self._t0: deque[float] = deque()
+        self._positions: deque[np.ndarray] = deque()
+
+    def observe(self, t: float, p: np.ndarray) -> None:
+        horizon = (self.n_leads - 1) * self.dt
+        while self._t0 and t - self._t0[0] > horizon - 1e-9:
+            self._t0.popleft()
+            self._positions.popleft()
+        if not self._t0:
+            return
+        t0 = np.fromiter(self._t0, float)
+        pos = np.asarray(self._positions)  # (K, n_leads, 3)
+        x = (t - t0) / self.dt
+        ok = x > 1e-6
+        x, pos = x[ok], pos[ok]
+        i = np.minimum(np.floor(x).astype(int), self.n_leads - 2)
+        w = (x - i)[:, None]
+        rows = np.arange(len(i))
+        predicted = (1 - w) * pos[rows, i] + w * pos[rows, i + 1]
+        err2 = np.sum((predicted - p) ** 2, axis=1)
+        for k, e in zip(np.round(x).astype(int), err2, strict=True):
+            old = self.mse[k]
+            self.mse[k] = e if np.isnan(old) else old + self.alpha * (e - old)
+            self.count[k] += 1
+
+    def keep(self, forecast: Forecast) -> None:
+        self._t0.append(forecast.t0)
+        self._positions.append(forecast.positions)
+
+    def sigma(self, leads: np.ndarray) -> np.ndarray:
+        """RMS error at ``leads`` (seconds), NaN where nothing was measured yet."""
+        k = np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
+        return np.sqrt(self.mse[k])

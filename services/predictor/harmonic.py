@@ -1,0 +1,125 @@
+"""The paper's motion model (section IV-D, E, equations 1-7), fitted online.
+
+x(t) = A_x sin(ωt + φ_x) + δ_x(t),  y(t) = A_y sin(ωt + φ_y) + δ_y(t),
+z(t) = A_z cos(ωt + φ_z) + A_z2 cos(2ωt + φ_z2) + δ_z(t)
+
+over a sliding window of observations; the sway δ is a slow (linear in time) term; z also gets
+the second harmonic (a body on a tether rises twice per swing). ω is estimated from the data:
+the strongest peak of the horizontal velocity spectrum, refined every ``refit_s`` by a golden-
+section search on the least-squares residual. Nothing about the wave condition is given.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from wavegrasp.predictor.forecast import check_position
+
+
+def spectral_omega(t: np.ndarray, p: np.ndarray, band_hz=(0.2, 3.0)) -> float | None:
+    """ω (rad/s) of the strongest peak of the horizontal velocity spectrum, or None."""
+    dt = 0.05
+    grid = np.arange(t[0], t[-1], dt)
+    if len(grid) < 40:
+        return None
+    v = np.diff(np.column_stack([np.interp(grid, t, p[:, i]) for i in range(2)]), axis=0) / dt
+    v -= v.mean(axis=0)
+    n = 8 * len(v)
+    power = sum(np.abs(np.fft.rfft(v[:, i] * np.hanning(len(v)), n)) ** 2 for i in range(2))
+    f = np.fft.rfftfreq(n, dt)
+    band = (f >= band_hz[0]) & (f <= band_hz[1])
+    if not band.any() or power[band].max() <= 0:
+        return None
+    return float(2 * np.pi * f[band][np.argmax(power[band])])
+
+
+def design(tau: np.ndarray, omega: float, second: bool) -> np.ndarray:
+    """Columns 1, τ, sin ωτ, cos ωτ (and sin 2ωτ, cos 2ωτ) for times ``tau`` (n,)."""
+    cols = [np.ones_like(tau), tau, np.sin(omega * tau), np.cos(omega * tau)]
+    if second:
+        cols += [np.sin(2 * omega * tau), np.cos(2 * omega * tau)]
+    return np.column_stack(cols)
+
+
+class HarmonicModel:
+    """Least-squares harmonic fit over the last ``window_s`` seconds of observations."""
+
+    def __init__(self, window_s: float = 12.0, refit_s: float = 1.0,
+                 min_periods: float = 3.0) -> None:
+        self.window_s, self.refit_s, self.min_periods = window_s, refit_s, min_periods
+        self.reset()
+
+    def reset(self) -> None:
+        self._t: deque[float] = deque()
+        self._p: deque[np.ndarray] = deque()
+        self.omega: float | None = None
+        self._next_refit = -np.inf
+        self.coef_xy: np.ndarray | None = None  # (4, 2)
+        self.coef_z: np.ndarray | None = None  # (6,)
+        self.t_now = 0.0
+
+    def update(self, t: float, p: np.ndarray) -> None:
+        self._t.append(t)
+        self._p.append(check_position(p))
+        while self._t[0] < t - self.window_s:
+            self._t.popleft()
+            self._p.popleft()
+        self.t_now = t
+        ts, ps = np.fromiter(self._t, float), np.array(self._p)
+        if t >= self._next_refit or self.omega is None:
+            omega = spectral_omega(ts, ps) if self.omega is None else self.omega
+            if omega is not None:
+                self.omega = self._refine(ts, ps, omega)
+                self._next_refit = t + self.refit_s
+        if self.omega is None or len(ts) < 12:
+            self.coef_xy = self.coef_z = None
+            return
+        tau = ts - t
+        self.coef_xy = np.linalg.lstsq(design(tau, self.omega, False), ps[:, :2], rcond=None)[0]
+        self.coef_z = np.linalg.lstsq(design(tau, self.omega, True), ps[:, 2], rcond=None)[0]
+
+    def _refine(self, ts: np.ndarray, ps: np.ndarray, omega: float) -> float:
+        tau = ts - ts[-1]
+
+        def residual(w: float) -> float:
+            r = 0.0
+            for cols, second in ((ps[:, :2], False), (ps[:, 2], True)):
+                A = design(tau, w, second)
+                r += float(np.sum((A @ np.linalg.lstsq(A, cols, rcond=None)[0] - cols) ** 2))
+            return r
+
+        best = minimize_scalar(residual, bounds=(0.9 * omega, 1.1 * omega), method="bounded",
+                               options={"xatol": 1e-4 * omega})
+        return float(best.x)
+
+    @property
+    def warm(self) -> bool:
+        return (self.coef_xy is not None and len(self._t) > 1
+                and self._t[-1] - self._t[0] >= self.min_periods * 2 * np.pi / self.omega)
+
+    def predict(self, leads: np.ndarray) -> np.ndarray | None:
+        """Positions (m, 3) at ``leads`` seconds after the last observation, or None."""
+        if self.coef_xy is None or self.coef_z is None:
+            return None
+        xy = design(leads, self.omega, False) @ self.coef_xy
+        z = design(leads, self.omega, True) @ self.coef_z
+        return np.column_stack([xy, z])
+
+    def parameters(self) -> dict[str, float]:
+        """ω, period, per-axis amplitude and phase (equations 1-3, t = 0 at the last
+        observation), the z second harmonic, and the sway (value and rate) per axis."""
+        if self.coef_xy is None or self.coef_z is None:
+            return {}
+        out = {"omega": self.omega, "period_s": 2 * np.pi / self.omega}
+        for i, axis in enumerate("xy"):
+            c0, c1, a, b = self.coef_xy[:, i]  # a sin + b cos = A sin(ωt + φ)
+            out |= {f"A_{axis}": float(np.hypot(a, b)), f"phi_{axis}": float(np.arctan2(b, a)),
+                    f"sway_{axis}": float(c0), f"sway_rate_{axis}": float(c1)}
+        c0, c1, a, b, a2, b2 = self.coef_z  # a sin + b cos = A cos(ωt + φ)
+        out |= {"A_z": float(np.hypot(a, b)), "phi_z": float(np.arctan2(-a, b)),
+                "A_z2": float(np.hypot(a2, b2)), "phi_z2": float(np.arctan2(-a2, b2)),
+                "sway_z": float(c0), "sway_rate_z": float(c1)}
+        return out

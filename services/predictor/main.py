@@ -1,0 +1,89 @@
+"""``wavegrasp predictor [--model NAME]``: observations -> where the object will be.
+
+Subscribes ``wavegrasp/perception/object`` (nothing else: no wave condition, no ground truth)
+and publishes, for each observation with a centroid, ``wavegrasp/predictor/prediction``:
+samples from now to ``horizon_periods`` wave periods ahead (at least one), each with its sigma,
+and the model's parameters. ``warm`` is false until the model has measured its own errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+import numpy as np
+from pydantic import Field
+
+from wavegrasp.predictor.forecast import Forecast
+from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS, make_predictor
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import derived_header
+from wavegrasp.schemas import MotionPrediction, ObjectObservation, PredictionSample
+
+log = logging.getLogger("wavegrasp.predictor")
+PREDICTION_KEY = "wavegrasp/predictor/prediction"
+UNKNOWN_SIGMA_M = 1.0  # before any error has been measured at a lead
+
+
+class PredictorSettings(Settings):
+    predictor: str = Field(DEFAULT_MODEL, description=f"one of {', '.join(MODELS)}")
+    horizon_periods: float = Field(1.5, ge=1.0)
+
+
+class PredictorService(Service):
+    def __init__(self, settings: PredictorSettings, bus: Bus | None = None) -> None:
+        super().__init__(settings, bus)
+        self.cfg = settings
+        self.model = make_predictor(settings.predictor)
+        self.epoch_ns: int | None = None
+        self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
+
+    def on_observation(self, msg: ObjectObservation, d: Delivery) -> None:
+        if msg.centroid is None:
+            self.counters["observations without centroid"] += 1
+            return
+        c = msg.centroid
+        if self.epoch_ns is None:
+            self.epoch_ns = msg.header.stamp_ns
+        t = (msg.header.stamp_ns - self.epoch_ns) * 1e-9
+        forecast = self.model.update(t, np.array([c.x, c.y, c.z]))
+        if forecast is None or not np.isfinite(forecast.period_s):
+            self.counters["warming up"] += 1
+            return
+        self.counters["predictions"] += 1
+        self.bus.publish(PREDICTION_KEY, self.message(msg, d, forecast))
+
+    def message(self, msg: ObjectObservation, d: Delivery, f: Forecast) -> MotionPrediction:
+        """The forecast as samples on the recording clock, up to ``horizon_periods``."""
+        last = min(len(f.leads), int(np.ceil(self.cfg.horizon_periods * f.period_s / (
+            f.leads[1] - f.leads[0]))) + 1)
+        sigma = f.sigma.copy()
+        known = sigma[np.isfinite(sigma)]
+        sigma[~np.isfinite(sigma)] = known.max() if len(known) else UNKNOWN_SIGMA_M
+        t0_ns = self.epoch_ns + int(round(f.t0 * 1e9))
+        samples = [PredictionSample(t_ns=t0_ns + int(round(lead * 1e9)), x=p[0], y=p[1], z=p[2],
+                                    sigma=s)
+                   for lead, p, s in zip(f.leads[:last], f.positions[:last], sigma[:last],
+                                         strict=True)]
+        params = {k: float(v) for k, v in f.parameters.items() if np.isfinite(v)}
+        return MotionPrediction(header=derived_header(msg.header, self.name, d.recv_ns),
+                                model=self.model.name, period_s=f.period_s, samples=samples,
+                                parameters=params, warm=f.warm)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="wavegrasp predictor", description=__doc__)
+    parser.add_argument("--model", choices=MODELS, help="default: WAVEGRASP_PREDICTOR or "
+                        f"{DEFAULT_MODEL}")
+    args = parser.parse_args(argv)
+    try:
+        settings = PredictorSettings.from_env("predictor", predictor=args.model)
+        make_predictor(settings.predictor)
+    except ValueError as exc:
+        print(f"wavegrasp predictor: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return PredictorService(settings).run()

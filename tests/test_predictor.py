@@ -1,0 +1,114 @@
+"""Motion models: the paper's harmonic model, the linear baseline, and the default blend."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wavegrasp.predictor.harmonic import HarmonicModel
+from wavegrasp.predictor.models import LinearPredictor, make_predictor
+
+OMEGA = 2 * np.pi / 1.2
+
+
+def motion(t: np.ndarray) -> np.ndarray:
+    """A tethered body's centroid: horizontal swing, vertical at 2ω, slow sway (n, 3)."""
+    return np.column_stack([
+        0.02 + 0.10 * np.sin(OMEGA * t + 0.3) + 0.004 * np.sin(2 * np.pi * t / 40),
+        -0.01 + 0.012 * np.sin(OMEGA * t + 1.1),
+        0.50 + 0.015 * np.cos(OMEGA * t + 0.5) + 0.006 * np.cos(2 * OMEGA * t + 0.2)])
+
+
+def stream(seconds: float, seed: int = 0, jitter_s: float = 0.01, noise_m: float = 0.0005):
+    """Irregularly spaced noisy observations at about 10 Hz."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, seconds, 0.1) + rng.uniform(-jitter_s, jitter_s, int(np.ceil(seconds * 10)))
+    return t, motion(t) + rng.normal(0, noise_m, (len(t), 3))
+
+
+def test_harmonic_fit_recovers_omega_amplitudes_and_phases() -> None:
+    model = HarmonicModel(window_s=12.0)
+    t, p = stream(20.0)
+    for ti, pi in zip(t, p, strict=True):
+        model.update(ti, pi)
+    params = model.parameters()
+    assert params["omega"] == pytest.approx(OMEGA, rel=0.005)
+    assert params["A_x"] == pytest.approx(0.10, rel=0.05)
+    assert params["A_y"] == pytest.approx(0.012, rel=0.05)
+    assert params["A_z"] == pytest.approx(0.015, rel=0.05)
+    assert params["A_z2"] == pytest.approx(0.006, rel=0.1)
+    # Phases are referred to the last observation (t = 0 there).
+    t_last = t[-1]
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    assert wrap(params["phi_x"] - (OMEGA * t_last + 0.3)) == pytest.approx(0, abs=0.05)
+    assert wrap(params["phi_z"] - (OMEGA * t_last + 0.5)) == pytest.approx(0, abs=0.05)
+    assert model.warm
+
+
+def test_linear_is_the_constant_velocity_extrapolation() -> None:
+    model = LinearPredictor(window_s=0.3)
+    t, p = stream(3.0, jitter_s=0.02)
+    for ti, pi in zip(t, p, strict=True):
+        forecast = model.update(ti, pi)
+    recent = t >= t[-1] - 0.3 - 1e-9
+    v = np.array([np.polyfit(t[recent], p[recent, i], 1)[0] for i in range(3)])
+    leads = forecast.leads
+    assert forecast.t0 == t[-1]
+    np.testing.assert_allclose(forecast.positions, p[-1] + np.outer(leads, v), atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["blend", "harmonic"])
+def test_models_predict_a_period_ahead_with_calibrated_sigma(name: str) -> None:
+    model = make_predictor(name)
+    t, p = stream(40.0, seed=1)
+    errors, inside = [], []
+    for ti, pi in zip(t, p, strict=True):
+        f = model.update(ti, pi)
+        if f is None or ti < 15 or f.t0 + 1.2 > t[-1]:
+            continue
+        err = np.linalg.norm(f.at(f.t0 + 1.2) - motion(np.array([f.t0 + 1.2]))[0])
+        errors.append(err)
+        inside.append(err <= 2 * np.interp(1.2, f.leads, f.sigma))
+    assert np.sqrt(np.mean(np.square(errors))) < 0.003
+    assert np.mean(inside) >= 0.9
+    assert f.warm and f.period_s == pytest.approx(1.2, rel=0.01)
+    assert f.leads[-1] >= f.period_s
+
+
+def rmse_after(model, t: np.ndarray, p: np.ndarray, start: float) -> float:
+    errors = []
+    for ti, pi in zip(t, p, strict=True):
+        f = model.update(ti, pi)
+        if f is not None and ti >= start and f.t0 + 1.2 <= t[-1]:
+            truth = motion(np.array([f.t0 + 1.2]))[0]
+            errors.append(np.linalg.norm(f.at(f.t0 + 1.2) - truth))
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def test_gap_and_restart_recover() -> None:
+    t, p = stream(50.0, seed=2)
+    lost = (t > 25) & (t < 28)  # the object lost for 3 s
+    model = make_predictor("blend")
+    assert rmse_after(model, t[~lost], p[~lost], start=31) < 0.003
+    # The stream restarts (a new recording, time running backwards): the model starts over.
+    assert model.update(t[0], p[0]) is None, "a restart starts the stream over"
+    assert model.t_last == t[0]
+    assert rmse_after(model, t[1:][t[1:] < 30], p[1:][t[1:] < 30], start=15) < 0.003
+
+
+def test_duplicate_and_out_of_order_stamps_are_ignored() -> None:
+    model = make_predictor("harmonic")
+    t, p = stream(10.0)
+    for ti, pi in zip(t, p, strict=True):
+        model.update(ti, pi)
+    n = model.updates
+    assert model.update(t[-1], p[-1]) is None
+    assert model.update(t[-1] - 0.05, p[-1]) is None
+    assert model.updates == n
+
+
+def test_bad_positions_are_rejected_by_name() -> None:
+    with pytest.raises(ValueError, match="NaN"):
+        make_predictor("linear").update(0.0, np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="unknown predictor model"):
+        make_predictor("kalman")
