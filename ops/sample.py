@@ -43,7 +43,7 @@ def cached_recording(**config: object) -> Path:
     from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig, generate
 
     cfg = RecordConfig(**config)
-    digest = hashlib.sha256(repr(sorted(config.items())).encode()).hexdigest()[:8]
+    digest = hashlib.sha256(repr(cfg).encode()).hexdigest()[:8]
     name = (f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
             f"-v{GENERATOR_VERSION}-{digest}.mcap")
     path = cache_dir() / "recordings" / name

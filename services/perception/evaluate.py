@@ -59,13 +59,14 @@ class Track:
     """What perception saw in a recording, beside the truth.
 
     stamps_ns : array, shape (n,), camera frames; centres : array, shape (n, 3), metres, world,
-    NaN where no centroid was reported; times_ms, points : per frame; truth_ns, truth : the
-    ground truth, shape (m,) and (m, 3).
+    NaN where no centroid was reported; sigmas : shape (n,), metres, the reported uncertainty;
+    times_ms, points : per frame; truth_ns, truth : the ground truth, shape (m,) and (m, 3).
     """
 
     path: Path
     stamps_ns: np.ndarray
     centres: np.ndarray
+    sigmas: np.ndarray
     times_ms: np.ndarray
     points: np.ndarray
     truth_ns: np.ndarray
@@ -77,7 +78,7 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
     perception = Perception(cfg)
     tf = StaticTransforms()
     truth: dict[int, np.ndarray] = {}
-    stamps, centres, times, sizes = [], [], [], []
+    stamps, centres, sigmas, times, sizes = [], [], [], [], []
     for m in open_recording(path).messages():
         if m.topic == "/tf_static":
             tf.update(decode_tf(m.cdr))
@@ -93,8 +94,10 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
             sizes.append(len(cloud.points))
             stamps.append(cloud.stamp_ns)
             centres.append(np.full(3, np.nan) if result.fit is None else result.fit.centre)
+            sigmas.append(np.nan if result.fit is None else result.fit.sigma)
     truth_ns = np.array(sorted(truth))
-    return Track(Path(path), np.array(stamps), np.reshape(centres, (-1, 3)), np.array(times),
+    return Track(Path(path), np.array(stamps), np.reshape(centres, (-1, 3)), np.array(sigmas),
+                 np.array(times),
                  np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]))
 
 

@@ -35,12 +35,12 @@ def score(track: Track, model: str, period_s: float, warmup_s: float = 10.0) -> 
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
     errors: list[list[float]] = [[] for _ in FRACTIONS]
     inside, times = [], []
-    for stamp, centre in zip(track.stamps_ns, track.centres, strict=True):
+    for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
         if np.isnan(centre[0]):
             continue
         t = (stamp - track.stamps_ns[0]) * 1e-9
         start = time.perf_counter()
-        forecast = predictor.update(t, centre)
+        forecast = predictor.update(t, centre, sigma)
         times.append((time.perf_counter() - start) * 1e3)
         if forecast is None or t < warmup_s or forecast.t0 + period_s > t_truth[-1]:
             continue
@@ -49,8 +49,7 @@ def score(track: Track, model: str, period_s: float, warmup_s: float = 10.0) -> 
             true = np.array([np.interp(target, t_truth, track.truth[:, k]) for k in range(3)])
             err = float(np.linalg.norm(forecast.at(target) - true))
             errors[i].append(err)
-        sigma = float(np.interp(period_s, forecast.leads, forecast.sigma))
-        inside.append(errors[-1][-1] <= 2 * sigma)
+        inside.append(errors[-1][-1] <= 2 * np.interp(period_s, forecast.leads, forecast.sigma))
     rmse = tuple(float(np.sqrt(np.mean(np.square(e)))) if e else float("nan") for e in errors)
     return PredictorScore(model, rmse, float(np.mean(inside)) if inside else float("nan"),
                           np.asarray(times), len(errors[-1]))

@@ -48,13 +48,16 @@ class ErrorTracker:
 
     Every forecast is kept until its last lead has passed; each new observation is compared
     with what each kept forecast said for that moment, and the squared error goes into an
-    exponential average for its lead bin (``dt`` wide). ``memory`` is the averaging length in
-    samples per bin. Forecasts must share the lead grid ``k * dt``, k = 0..n_leads-1.
+    exponential average for its lead bin (``dt`` wide), a fast one (``memory`` samples per bin)
+    and a slow one (three times longer); sigma is the larger, so it rises as soon as errors grow
+    and does not drop after a few lucky forecasts; :meth:`recent` is the fast one alone.
+    Forecasts must share the lead grid ``k * dt``, k = 0..n_leads-1.
     """
 
     def __init__(self, dt: float, n_leads: int, memory: int = 60) -> None:
-        self.dt, self.n_leads, self.alpha = dt, n_leads, 1.0 / memory
-        self.mse = np.full(n_leads, np.nan)
+        self.dt, self.n_leads = dt, n_leads
+        self.alphas = np.array([1.0 / memory, 1.0 / (3 * memory)])
+        self.mse = np.full((n_leads, 2), np.nan)
         self.count = np.zeros(n_leads, dtype=int)
         self.reset()
 
@@ -82,14 +85,20 @@ class ErrorTracker:
         err2 = np.sum((predicted - p) ** 2, axis=1)
         for k, e in zip(np.round(x).astype(int), err2, strict=True):
             old = self.mse[k]
-            self.mse[k] = e if np.isnan(old) else old + self.alpha * (e - old)
+            self.mse[k] = e if np.isnan(old[0]) else old + self.alphas * (e - old)
             self.count[k] += 1
 
     def keep(self, forecast: Forecast) -> None:
         self._t0.append(forecast.t0)
         self._positions.append(forecast.positions)
 
+    def _bins(self, leads: np.ndarray) -> np.ndarray:
+        return np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
+
     def sigma(self, leads: np.ndarray) -> np.ndarray:
         """RMS error at ``leads`` (seconds), NaN where nothing was measured yet."""
-        k = np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
-        return np.sqrt(self.mse[k])
+        return np.sqrt(self.mse[self._bins(leads)].max(axis=1))
+
+    def recent(self, leads: np.ndarray) -> np.ndarray:
+        """The fast average alone: how good the model is now (for weighting models)."""
+        return np.sqrt(self.mse[self._bins(leads), 0])

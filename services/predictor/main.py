@@ -49,7 +49,7 @@ class PredictorService(Service):
         if self.epoch_ns is None:
             self.epoch_ns = msg.header.stamp_ns
         t = (msg.header.stamp_ns - self.epoch_ns) * 1e-9
-        forecast = self.model.update(t, np.array([c.x, c.y, c.z]))
+        forecast = self.model.update(t, np.array([c.x, c.y, c.z]), msg.sigma_m)
         if forecast is None or not np.isfinite(forecast.period_s):
             self.counters["warming up"] += 1
             return

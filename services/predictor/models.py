@@ -32,14 +32,20 @@ class Predictor:
         self.tracker = ErrorTracker(dt, len(self.leads))
         self.t_last: float | None = None
         self.updates = 0
+        self.observation_var = 0.0
 
-    def update(self, t: float, p: np.ndarray) -> Forecast | None:
-        """Take the observation ``p`` (shape (3,), metres, world) at ``t`` seconds.
+    def update(self, t: float, p: np.ndarray, sigma: float | None = None) -> Forecast | None:
+        """Take the observation ``p`` (shape (3,), metres, world) at ``t`` seconds, whose own
+        uncertainty (1-sigma, metres) is ``sigma`` if the observer reports one.
 
         A duplicate or slightly out-of-order stamp is ignored (None); time running backwards
-        by more than ``max_gap_s`` is a restart of the stream: the state is reset.
+        by more than ``max_gap_s`` is a restart of the stream: the state is reset. A forecast's
+        sigma is the error measured against later observations, plus the observations' own
+        uncertainty (what the observer gets wrong consistently, no model can see).
         """
         p = check_position(p)
+        if sigma is not None and np.isfinite(sigma):
+            self.observation_var += 0.02 * (sigma**2 - self.observation_var)
         if self.t_last is not None and t <= self.t_last:
             if t > self.t_last - self.max_gap_s:
                 return None
@@ -49,7 +55,8 @@ class Predictor:
         self.tracker.observe(t, p)
         forecast = self._update(t, p)
         if forecast is not None:
-            forecast.sigma = self.tracker.sigma(forecast.leads)
+            forecast.sigma = np.sqrt(self.tracker.sigma(forecast.leads) ** 2
+                                     + self.observation_var)
             self.tracker.keep(forecast)
         return forecast
 
@@ -131,8 +138,9 @@ class BlendPredictor(Predictor):
         self.lag = LagRegression(dt=self.dt, horizon=len(self.leads) - 1,
                                  max_gap_s=self.max_gap_s)
         self.harmonic = HarmonicModel()
-        self.lag_errors = ErrorTracker(self.dt, len(self.leads))
-        self.harmonic_errors = ErrorTracker(self.dt, len(self.leads))
+        # Short memory: the weights follow which model is better now.
+        self.lag_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
+        self.harmonic_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
 
     def restart(self) -> None:
         super().restart()
@@ -159,8 +167,8 @@ class BlendPredictor(Predictor):
             positions, w_lag = (harmonic, np.zeros(len(self.leads))) if lag is None else (
                 lag[1], np.ones(len(self.leads)))
         else:
-            mse_lag = self.lag_errors.sigma(self.leads) ** 2
-            mse_h = self.harmonic_errors.sigma(self.leads) ** 2
+            mse_lag = self.lag_errors.recent(self.leads) ** 2
+            mse_h = self.harmonic_errors.recent(self.leads) ** 2
             w_lag = np.where(np.isnan(mse_lag) | np.isnan(mse_h), 0.5,
                              mse_h / np.maximum(mse_lag + mse_h, 1e-12))
             w_lag = np.nan_to_num(w_lag, nan=0.5)

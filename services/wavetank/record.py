@@ -61,6 +61,12 @@ class RecordConfig:
     dt_s: float = 0.002
     camera: dict = field(default_factory=dict)  # TrisectCamera overrides (width, noise...)
 
+    def __post_init__(self) -> None:
+        # 40 and 40.0 seconds are the same recording (and the same cache entry).
+        for name in ("seconds", "rate_hz", "groundtruth_hz", "object_scale", "preroll_s", "dt_s"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "camera_offset", tuple(float(v) for v in self.camera_offset))
+
     def check(self) -> None:
         if self.wave not in TABLE_I:
             raise ValueError(f"wave must be one of {sorted(TABLE_I)}, got {self.wave}")
