@@ -1,0 +1,47 @@
+"""Input checks for the arm's modules; each raises ValueError naming the problem."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def check_vector(name: str, v: np.ndarray, n: int) -> np.ndarray:
+    """Return `v` as a finite float array, shape (n,)."""
+    v = np.asarray(v, dtype=float)
+    if v.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {v}")
+    return v
+
+
+def check_unit(name: str, v: np.ndarray) -> np.ndarray:
+    """Return `v` (shape (3,)) normalised; raise ValueError if it is far from unit length."""
+    v = check_vector(name, v, 3)
+    norm = float(np.linalg.norm(v))
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"{name} must be a unit vector, has length {norm:.6g}")
+    return v / norm
+
+
+def check_transform(name: str, T: np.ndarray) -> np.ndarray:
+    """Return `T` as a float array, shape (4, 4); raise ValueError unless it is rigid."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must have shape (4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be finite")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {T[3]}")
+    R = T[:3, :3]
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+        raise ValueError(f"{name} rotation part is not a proper rotation matrix")
+    return T
+
+
+def check_positive(name: str, value: float) -> float:
+    """Return `value` as a float; raise ValueError unless it is finite and > 0."""
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return value

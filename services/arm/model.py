@@ -1,0 +1,200 @@
+"""The arm's kinematic model, read from a URDF: limits, forward and inverse kinematics."""
+
+from __future__ import annotations
+
+import importlib.resources
+from pathlib import Path
+
+import numpy as np
+
+from wavegrasp.arm import ik
+from wavegrasp.arm.checks import check_transform, check_unit, check_vector
+from wavegrasp.arm.kinematics import Chain
+from wavegrasp.arm.limits import Joint, apply_overrides, joint_limits
+from wavegrasp.arm.urdf import DEFAULT_RADIUS, UrdfRobot, parse_urdf
+
+__all__ = ["ArmModel", "Joint", "DEFAULT_URDF"]
+
+#: File name of the packaged Bravo-7-like model.
+DEFAULT_URDF = "bravo7_like.urdf"
+#: Restarts after the seed and home pose: fixed joint vectors drawn within the limits.
+N_RESTARTS = 16
+
+
+class ArmModel:
+    """A serial arm from `base_link` to `tool_link` and its jaw, from a URDF.
+
+    `q` is one value per arm joint, in `joint_names` order: array, shape (n,), radians
+    (n = 6 for a Bravo-7-class arm). Poses are in frame `base_link`, metres.
+    Use :meth:`load`; attributes: `joint_names`, `joints` (name -> :class:`Joint`, the arm
+    joints then the jaw joints), `jaw_joints`, `jaw_max_opening_m`, `base_link`, `tool_link`,
+    `link_names` (the chain's links after the base, the order of :meth:`forward_all`),
+    `reach_m` (shoulder to tool with the arm straight: the offsets after the second arm joint),
+    `q_home`, and `lower`, `upper`, `max_velocity`, `max_acceleration`, `max_jerk` (arrays,
+    shape (n,), over the arm joints).
+    """
+
+    def __init__(self, robot: UrdfRobot, tool_link: str, base_link: str | None,
+                 overrides: dict[str, dict[str, float]] | None) -> None:
+        self.base_link = base_link or robot.root()
+        self.tool_link = tool_link
+        self._chain = Chain(robot.chain(self.base_link, tool_link))
+        self.link_names = [j.child for j in self._chain.joints]
+        self.joint_names = [j.name for j in self._chain.movable]
+        if not self.joint_names:
+            raise ValueError(f"no movable joints between {self.base_link!r} and {tool_link!r}")
+        on_chain = {self.base_link, *self.link_names}
+        self.jaw_joints = robot.jaw_joints if robot.jaw_joints is not None else [
+            j.name for j in robot.joints.values()
+            if j.type == "prismatic" and j.parent in on_chain and j.child not in on_chain]
+        self._jaw = [robot.joints[name] for name in self.jaw_joints]
+        joints = {j.name: joint_limits(j, robot.extra_limits.get(j.name, {}))
+                  for j in [*self._chain.movable, *self._jaw]}
+        self.joints = apply_overrides(joints, overrides)
+        self.jaw_max_opening_m = robot.jaw_max_opening if robot.jaw_max_opening is not None \
+            else sum(self.joints[n].upper - self.joints[n].lower for n in self.jaw_joints)
+        arm = [self.joints[n] for n in self.joint_names]
+        self.lower = np.array([j.lower for j in arm])
+        self.upper = np.array([j.upper for j in arm])
+        self.max_velocity = np.array([j.max_velocity for j in arm])
+        self.max_acceleration = np.array([j.max_acceleration for j in arm])
+        self.max_jerk = np.array([j.max_jerk for j in arm])
+        n = len(arm)
+        if robot.home is not None and robot.home.shape != (n,):
+            raise ValueError(f"<home q> has {robot.home.size} values, the arm {n} joints")
+        home = robot.home if robot.home is not None else np.zeros(n)
+        self.q_home = np.clip(home, self.lower, self.upper)
+        self.reach_m = self._chain.reach_after(min(1, n - 1))
+        self._reach_bound = self._chain.reach_after(0)
+        self._shoulder = self._chain.frames(self.q_home)[1][0]  # first joint's origin, fixed
+        rng = np.random.default_rng(0)
+        self._restarts = list(rng.uniform(self.lower, self.upper, (N_RESTARTS, n)))
+        self._shapes = robot.links
+        self._jaw_parent = [self.link_names.index(j.parent) if j.parent in self.link_names
+                            else -1 for j in self._jaw]
+
+    @classmethod
+    def load(cls, path: str | Path | None = None,
+             overrides: dict[str, dict[str, float]] | None = None, *,
+             tool_link: str = "tool", base_link: str | None = None) -> ArmModel:
+        """Read an arm from the URDF at `path`, by default wavegrasp's Bravo-7-like model.
+
+        overrides : per-joint limits replacing the URDF's, e.g.
+            {"wrist_roll": {"max_velocity": 0.5}}; fields are those of :class:`Joint`.
+        tool_link, base_link : the chain's ends; base_link defaults to the URDF's root link.
+        A URDF without wavegrasp's <limits> elements gets :data:`limits.DEFAULTS`.
+        """
+        if path is None:
+            with importlib.resources.as_file(
+                    importlib.resources.files("wavegrasp.arm") / DEFAULT_URDF) as p:
+                return cls(parse_urdf(p), tool_link, base_link, overrides)
+        if not Path(path).is_file():
+            raise ValueError(f"arm URDF {str(path)!r} does not exist")
+        return cls(parse_urdf(path), tool_link, base_link, overrides)
+
+    # --- limits ---------------------------------------------------------------------------
+
+    def check_q(self, q: np.ndarray) -> np.ndarray:
+        """Return q as array, shape (n,), radians; raise ValueError naming the first joint
+        outside its limits (or a wrong shape or non-finite value)."""
+        q = check_vector("q", q, len(self.joint_names))
+        for name, value, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True):
+            if not lo - 1e-9 <= value <= hi + 1e-9:
+                raise ValueError(f"q: joint {name!r} = {value:.6g} outside [{lo:.6g}, {hi:.6g}]")
+        return q
+
+    def within_limits(self, q: np.ndarray) -> bool:
+        """Whether q (array, shape (n,), radians) is finite and within every joint's limits."""
+        try:
+            self.check_q(q)
+        except ValueError:
+            return False
+        return True
+
+    # --- forward kinematics ---------------------------------------------------------------
+
+    def forward(self, q: np.ndarray) -> np.ndarray:
+        """T_base_tool : array, shape (4, 4), frame base_link, of q (array, shape (n,),
+        radians)."""
+        return self._chain.frames(check_vector("q", q, len(self.joint_names)))[0]
+
+    def forward_all(self, q: np.ndarray) -> list[np.ndarray]:
+        """T_base_link for each link in `link_names`: arrays, shape (4, 4), frame base_link."""
+        return self._chain.forward_all(check_vector("q", q, len(self.joint_names)))
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """Geometric Jacobian, array, shape (6, n): rows 0-2 the tool origin's velocity (m/s),
+        rows 3-5 its angular velocity (rad/s), both in frame base_link, per rad/s of each
+        joint."""
+        return self._chain.jacobian(check_vector("q", q, len(self.joint_names)))
+
+    def link_capsules(self, q: np.ndarray, jaw_opening_m: float | None = None
+                      ) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """Capsules (p0, p1 : arrays, shape (3,), metres, frame base_link; radius, metres)
+        around the moving links' collision shapes, jaw fingers included at `jaw_opening_m`
+        (default fully open). A moving link without usable shapes (a mesh) gets a capsule
+        of radius DEFAULT_RADIUS from its origin to the next link's."""
+        frames = self.forward_all(q)
+        out: list[tuple[np.ndarray, np.ndarray, float]] = []
+        moved = {j.child for j in self._chain.movable}
+        for k, (name, T) in enumerate(zip(self.link_names, frames, strict=True)):
+            shapes = self._shapes.get(name, [])
+            if not shapes and name in moved and k + 1 < len(frames):
+                out.append((T[:3, 3], frames[k + 1][:3, 3], DEFAULT_RADIUS))
+            out += [(T[:3, :3] @ c.p0 + T[:3, 3], T[:3, :3] @ c.p1 + T[:3, 3], c.radius)
+                    for c in shapes]
+        opening = self.jaw_max_opening_m if jaw_opening_m is None else jaw_opening_m
+        for joint, parent in zip(self._jaw, self._jaw_parent, strict=True):
+            if parent < 0:
+                continue
+            M = frames[parent] @ joint.origin
+            lim = self.joints[joint.name]
+            value = np.clip(opening / max(len(self._jaw), 1), lim.lower, lim.upper)
+            M[:3, 3] += M[:3, :3] @ (value * joint.axis)
+            out += [(M[:3, :3] @ c.p0 + M[:3, 3], M[:3, :3] @ c.p1 + M[:3, 3], c.radius)
+                    for c in self._shapes.get(joint.child, [])]
+        return out
+
+    # --- inverse kinematics ---------------------------------------------------------------
+
+    def _seeds(self, q_seed: np.ndarray) -> list[np.ndarray]:
+        return [q_seed, self.q_home, *self._restarts]
+
+    def _out_of_reach(self, p: np.ndarray, position_tol: float) -> bool:
+        return float(np.linalg.norm(p - self._shoulder)) > self._reach_bound + position_tol
+
+    def inverse(self, T_target: np.ndarray, q_seed: np.ndarray, position_tol: float = 1e-3,
+                angle_tol_deg: float = 2.0, max_iter: int = 100) -> np.ndarray | None:
+        """q (array, shape (n,), radians, within limits) with forward(q) within position_tol
+        metres and angle_tol_deg degrees of T_target (array, shape (4, 4), frame base_link),
+        or None if unreachable. Tries q_seed (array, shape (n,), radians) first, then the
+        home pose and fixed restarts (max_iter iterations each); deterministic."""
+        T_target = check_transform("T_target", T_target)
+        q_seed = np.clip(check_vector("q_seed", q_seed, len(self.joint_names)),
+                         self.lower, self.upper)
+        if self._out_of_reach(T_target[:3, 3], position_tol):
+            return None
+        return ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed),
+                        T_target[:3, 3], R_target=T_target[:3, :3], position_tol=position_tol,
+                        angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
+
+    def inverse_position(self, p: np.ndarray, approach: np.ndarray, q_seed: np.ndarray,
+                         position_tol: float = 1e-3, angle_tol_deg: float = 2.0,
+                         max_iter: int = 100) -> tuple[np.ndarray, np.ndarray] | None:
+        """A grasp at p (array, shape (3,), metres, frame base_link) with the tool's z axis
+        along `approach` (array, shape (3,), unit, frame base_link), rotation about it free:
+        (q, T_base_tool) or None. The jaw direction comes out near q_seed's; for a symmetric
+        jaw, of the wrist-roll values pi apart the one closest to q_seed is chosen."""
+        p = check_vector("p", p, 3)
+        approach = check_unit("approach", approach)
+        q_seed = np.clip(check_vector("q_seed", q_seed, len(self.joint_names)),
+                         self.lower, self.upper)
+        if self._out_of_reach(p, position_tol):
+            return None
+        q = ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed), p,
+                     approach=approach, position_tol=position_tol,
+                     angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
+        if q is None:
+            return None
+        q = ik.flip_last_roll(self._chain, self.lower, self.upper, q, q_seed)
+        return q, self.forward(q)
