@@ -1,0 +1,260 @@
+"""The decision gate: crafted message sequences through ``Gate``, and the service on a bus."""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+
+import numpy as np
+import pytest
+
+from wavegrasp.gate.decision import Gate, GateConfig, time_average
+from wavegrasp.gate.main import GateService, GateSettings
+from wavegrasp.runtime.bus import JSON, Bus, Delivery
+from wavegrasp.schemas import (
+    Clock,
+    GateDecision,
+    GraspOutcome,
+    GraspPlan,
+    Header,
+    Hop,
+    MotionPrediction,
+    ObjectObservation,
+    Pose,
+    PredictionSample,
+    Vec3,
+)
+
+from conftest import wait_until
+
+T0 = 1_000 * 10**9  # recording clock origin, ns
+ALIVE = {"perception", "predictor", "planner"}
+PERIOD_S = 4.0
+
+
+def ns(t_s: float) -> int:
+    return T0 + round(t_s * 1e9)
+
+
+def motion(t_s: float) -> np.ndarray:
+    """The object's true centroid (m): a wave-driven orbit."""
+    w = 2 * math.pi / PERIOD_S
+    return np.array([0.6 + 0.05 * math.sin(w * t_s), 0.1, -0.4 + 0.03 * math.sin(w * t_s + 1)])
+
+
+def prediction(made_s: float, offset=(0.0, 0.0, 0.0)) -> MotionPrediction:
+    """The same motion from ``made_s`` to 1.5 s ahead, every 50 ms, shifted by ``offset`` (m)."""
+    samples = []
+    for k in range(31):
+        t = made_s + 0.05 * k
+        p = motion(t) + offset
+        samples.append(PredictionSample(t_ns=ns(t), x=p[0], y=p[1], z=p[2], sigma=0.005))
+    return MotionPrediction(header=Header(stamp_ns=ns(made_s)), model="test", period_s=PERIOD_S,
+                            samples=samples)
+
+
+def observation(t_s: float, noise: np.ndarray, jump_m: float = 0.0) -> ObjectObservation:
+    p = motion(t_s) + noise + [jump_m, 0.0, 0.0]
+    return ObjectObservation(header=Header(stamp_ns=ns(t_s)), centroid=Vec3(x=p[0], y=p[1], z=p[2]),
+                             points_used=500, quality=1.0, sigma_m=0.001)
+
+
+def feed(gate: Gate, start_s: float = 0.0, end_s: float = 3.0, offset=(0.0, 0.0, 0.0),
+         jump_from_s: float = math.inf, seed: int = 0) -> None:
+    """Observations every 0.1 s (1 mm noise), each followed by a prediction made at its stamp."""
+    rng = np.random.default_rng(seed)
+    for i in range(round(start_s * 10), round(end_s * 10) + 1):
+        t = i / 10
+        jump = 0.05 if t >= jump_from_s else 0.0
+        gate.on_observation(observation(t, rng.normal(0, 0.001, 3), jump))
+        gate.on_prediction(prediction(t, offset))
+
+
+def plan(made_s: float, start_s: float, grasp_s: float, plan_id: str = "p1") -> GraspPlan:
+    g = motion(grasp_s)
+    return GraspPlan(header=Header(stamp_ns=ns(made_s), trace=[Hop(service="source", recv_ns=1)]),
+                     plan_id=plan_id, t_start_ns=ns(start_s), t_grasp_ns=ns(grasp_s),
+                     grasp=Pose(position=Vec3(x=g[0], y=g[1], z=g[2])),
+                     approach=Vec3(x=0, y=0, z=-1))
+
+
+def decide(gate: Gate, p: GraspPlan, now_s: float, alive=ALIVE,
+           latency_s: float = 0.02) -> GateDecision:
+    return gate.decide(p, ns(now_s), set(alive), latency_s)
+
+
+def test_clean_sequence_goes() -> None:
+    gate = Gate()
+    feed(gate)
+    d = decide(gate, plan(3.0, 3.3, 4.0), now_s=3.05)
+    assert d.go, d.reason
+    assert d.mean_error_m < 0.003 and d.threshold_m == 0.010 and d.window_s == 2.0
+    assert d.reason.startswith("go: error") and d.failed == [] and d.matches == 20
+    assert all(abs(e.lead_s - 0.2) < 1e-9 for e in gate.errors)  # most recent at >= 0.2 s
+
+
+def test_error_above_epsilon_is_no_go_naming_the_error() -> None:
+    gate = Gate()
+    feed(gate, offset=(0.02, 0.0, 0.0))
+    d = decide(gate, plan(3.0, 3.3, 4.0), now_s=3.05)
+    assert not d.go and d.failed == ["error"]
+    assert d.reason.startswith("error 2") and d.reason.endswith("mm > 10.0 mm")
+    assert 0.018 < d.mean_error_m < 0.022
+
+
+def test_stale_inputs_are_no_go() -> None:
+    gate = Gate()
+    feed(gate)
+    d = decide(gate, plan(3.0, 5.0, 5.5), now_s=4.0)
+    assert not d.go and set(d.failed) == {"stale"}
+    assert "stale observation: 1.00 s old" in d.reason
+    assert "stale prediction: 1.00 s old" in d.reason
+    d = decide(gate, plan(2.0, 3.5, 4.0), now_s=3.05)  # the plan's prediction only
+    assert not d.go and d.reason == "stale prediction: 1.05 s old"
+    assert "stale observation: none yet" in decide(Gate(), plan(0, 1, 2), now_s=0).reason
+
+
+def test_plan_too_close_to_start_is_no_go() -> None:
+    gate = Gate()
+    feed(gate)
+    d = decide(gate, plan(3.0, 3.08, 4.0), now_s=3.05, latency_s=0.012)
+    assert not d.go and d.reason == "cannot start on time: 30 ms left, 62 ms needed"
+
+
+def test_dead_upstream_is_no_go_naming_it() -> None:
+    gate = Gate()
+    feed(gate)
+    d = decide(gate, plan(3.0, 3.3, 4.0), now_s=3.05, alive={"perception", "planner", "sim"})
+    assert not d.go and d.reason == "upstream not alive: predictor"
+
+
+def test_abrupt_change_after_the_plans_prediction_is_no_go() -> None:
+    gate = Gate()
+    feed(gate, jump_from_s=2.95)  # the object jumps 5 cm at the last frame, 3.0 s
+    d = decide(gate, plan(2.9, 3.3, 4.0), now_s=3.05)
+    assert not d.go and d.failed == ["abrupt"], d.reason
+    assert re.fullmatch(r"abrupt change: e 5\d mm vs mean [12] mm", d.reason), d.reason
+    assert d.mean_error_m < 0.010  # the mean alone would have let it go
+    # a jump before the plan's prediction is in the mean error, not an abrupt change
+    gate = Gate()
+    feed(gate, end_s=2.0)
+    feed(gate, start_s=2.1, end_s=3.0, jump_from_s=2.1)
+    d = decide(gate, plan(3.0, 3.3, 4.0), now_s=3.05)
+    assert not d.go and d.failed == ["error"]
+
+
+def test_too_few_matches_is_warming_up() -> None:
+    gate = Gate()
+    feed(gate, end_s=0.8)  # observations at 0.2 .. 0.8 s have a prediction 0.2 s old
+    d = decide(gate, plan(0.8, 1.1, 1.8), now_s=0.85)
+    assert not d.go and d.reason == "warming up: 7 of 10 errors"
+
+
+def test_one_plan_executes_at_a_time() -> None:
+    gate = Gate()
+    feed(gate)
+    assert decide(gate, plan(3.0, 3.3, 4.0, "a"), now_s=3.05).go
+    d = decide(gate, plan(3.0, 3.4, 4.1, "b"), now_s=3.06)
+    assert not d.go and d.reason == "another plan executing: a"
+    assert not decide(gate, plan(3.0, 3.3, 4.0, "a"), now_s=3.07).go  # at most one go per plan
+    assert gate.on_outcome("a")
+    assert decide(gate, plan(3.0, 3.4, 4.1, "b"), now_s=3.08).go
+    feed(gate, start_s=3.1, end_s=5.7)  # b runs until 4.1 + 1.5 s hold
+    assert "another plan executing: b" in decide(gate, plan(5.5, 5.8, 6.5, "c"), 5.55).reason
+    assert decide(gate, plan(5.7, 6.0, 6.7, "c"), now_s=5.75).go
+
+
+def test_bad_input_raises_value_errors_naming_the_problem() -> None:
+    gate = Gate()
+    pred = prediction(0.0)
+    pred.samples.reverse()
+    with pytest.raises(ValueError, match="not strictly increasing"):
+        gate.on_prediction(pred)
+    with pytest.raises(ValueError, match="without samples"):
+        gate.on_prediction(MotionPrediction(header=Header(), model="m", period_s=1, samples=[]))
+    with pytest.raises(ValueError, match="centroid not finite"):
+        gate.on_observation(observation(0.0, np.array([math.nan, 0, 0])))
+    with pytest.raises(ValueError, match="t_grasp_ns before t_start_ns"):
+        decide(gate, plan(0.0, 1.0, 0.5), now_s=0.0)
+    assert gate.on_observation(ObjectObservation(header=Header(), reason="empty cloud")) is None
+
+
+def test_mean_error_is_a_trapezoid_time_average() -> None:
+    assert time_average([0, 1, 3], [0.0, 2.0, 2.0]) == pytest.approx(5 / 3)
+    assert time_average([5], [0.004]) == 0.004
+    with pytest.raises(ValueError):
+        time_average([], [])
+    gate = Gate(GateConfig(window_s=1.0))
+    feed(gate, offset=(0.0, 0.0, 0.01))
+    assert gate.mean_error(ns(3.0)) == pytest.approx(0.01, abs=0.002)
+    assert len(gate.window(ns(3.0))) == 11 and gate.mean_error(ns(10.0)) is None
+
+
+def test_settings_from_env() -> None:
+    env = {"WAVEGRASP_EPSILON_M": "0.02", "WAVEGRASP_REQUIRED_SERVICES": "perception,predictor"}
+    cfg = GateSettings.from_env("gate", env=env, window_s=1.5).gate_config()
+    assert cfg.epsilon_m == 0.02 and cfg.window_s == 1.5
+    assert cfg.required_services == ["perception", "predictor"] and cfg.min_matches == 10
+    with pytest.raises(ValueError, match="WAVEGRASP_EPSILON_M"):
+        GateSettings.from_env("gate", env={"WAVEGRASP_EPSILON_M": "-1"})
+
+
+def test_gate_service_on_an_isolated_bus() -> None:
+    settings = GateSettings(service="gate", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[])
+    bus = Bus(settings)
+    try:
+        service = GateService(settings, bus=bus)
+        tokens = [bus.session.liveliness().declare_token(f"wavegrasp/health/{name}")
+                  for name in ("perception", "predictor")]  # the planner is not up yet
+        routes = {key: i for i, key in enumerate(bus.subscriptions)}
+        seen: list[GateDecision] = []
+        bus.subscribe("wavegrasp/gate/decision", lambda m, d: seen.append(m), GateDecision)
+
+        def send(key: str, msg) -> bool:
+            payload = msg.model_dump_json().encode()
+            d = Delivery(key, payload, f"{JSON};{type(msg).__name__}", None, time.time_ns(),
+                         routes[key])
+            return bus.dispatch(d)
+
+        def decisions(n: int) -> list[GateDecision]:
+            def arrived() -> bool:
+                while not bus.inbox.empty():
+                    bus.dispatch(bus.inbox.get())
+                return len(seen) >= n
+            assert wait_until(arrived, timeout=5)
+            return seen
+
+        assert send("wavegrasp/clock", Clock(header=Header(stamp_ns=ns(3.05)), rate=0.0))
+        rng = np.random.default_rng(1)
+        for i in range(31):
+            assert send("wavegrasp/perception/object", observation(i / 10, rng.normal(0, 1e-3, 3)))
+            assert send("wavegrasp/predictor/prediction", prediction(i / 10))
+        p = plan(3.0, 3.3, 4.0, "a")
+        p.header.trace = [Hop(service="source", recv_ns=time.time_ns())]
+        assert send("wavegrasp/planner/plan", p)
+        first = decisions(1)[0]
+        assert not first.go and first.reason == "upstream not alive: planner"
+        tokens.append(bus.session.liveliness().declare_token("wavegrasp/health/planner"))
+        service._alive_at -= 1.0  # let the cache expire now instead of in 0.5 s
+        assert send("wavegrasp/planner/plan", p)
+        assert send("wavegrasp/planner/plan", plan(3.0, 3.0, 2.0, "bad"))
+        d, bad = decisions(3)[1:]
+        assert d.go, d.reason
+        assert [h.service for h in d.header.trace] == ["source", "gate"]
+        assert d.header.stamp_ns == ns(3.0) and d.header.trace[-1].sent_ns > 0
+        assert not bad.go and bad.reason.startswith("bad plan: plan bad: t_grasp_ns before")
+        outcome = GraspOutcome(header=Header(), plan_id="a", trial=0, attempt=0, success=True)
+        assert send("wavegrasp/sim/outcome", outcome)
+        assert not service.gate.executing
+        assert not send("wavegrasp/predictor/prediction", MotionPrediction(
+            header=Header(), model="m", period_s=1.0, samples=[]))  # counted as bad, not fatal
+        assert bus.bad["wavegrasp/predictor/prediction"] == 1
+        assert service.counters["go"] == 1 and service.counters["no-go"] == 2
+        assert service.counters["no-go: upstream"] == 1
+        assert service.counters["no-go: bad plan"] == 1
+        assert service.counters["errors scored"] == 29
+        for token in tokens:
+            token.undeclare()
+    finally:
+        bus.close()
