@@ -157,24 +157,26 @@ class ArmModel:
 
     # --- inverse kinematics ---------------------------------------------------------------
 
-    def _seeds(self, q_seed: np.ndarray) -> list[np.ndarray]:
-        return [q_seed, self.q_home, *self._restarts]
+    def _seeds(self, q_seed: np.ndarray, restarts: int | None = None) -> list[np.ndarray]:
+        return [q_seed, self.q_home, *self._restarts[:restarts]]
 
     def _out_of_reach(self, p: np.ndarray, position_tol: float) -> bool:
         return float(np.linalg.norm(p - self._shoulder)) > self._reach_bound + position_tol
 
     def inverse(self, T_target: np.ndarray, q_seed: np.ndarray, position_tol: float = 1e-3,
-                angle_tol_deg: float = 2.0, max_iter: int = 100) -> np.ndarray | None:
+                angle_tol_deg: float = 2.0, max_iter: int = 100,
+                restarts: int | None = None) -> np.ndarray | None:
         """q (array, shape (n,), radians, within limits) with forward(q) within position_tol
         metres and angle_tol_deg degrees of T_target (array, shape (4, 4), frame base_link),
         or None if unreachable. Tries q_seed (array, shape (n,), radians) first, then the
-        home pose and fixed restarts (max_iter iterations each); deterministic."""
+        home pose and fixed restarts (all, or the first ``restarts``; max_iter iterations
+        each); deterministic."""
         T_target = check_transform("T_target", T_target)
         q_seed = np.clip(check_vector("q_seed", q_seed, len(self.joint_names)),
                          self.lower, self.upper)
         if self._out_of_reach(T_target[:3, 3], position_tol):
             return None
-        return ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed),
+        return ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed, restarts),
                         T_target[:3, 3], R_target=T_target[:3, :3], position_tol=position_tol,
                         angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
 

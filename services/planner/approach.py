@@ -1,0 +1,108 @@
+"""Where and when to grasp, and the Cartesian approach (the paper's section IV-F).
+
+P_f is the predicted centroid at the grasp time; P_init = P_f + α n with n orthogonal to the
+object's motion (equation 8); waypoints P_i = P_init + (i/N)(P_f − P_init) + β_i n (equation
+9); the last move, into P_f, goes against the object's motion. Positions metres, ``world``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from wavegrasp.schemas import MotionPrediction
+
+
+@dataclass(frozen=True)
+class PredictedPath:
+    """times_s : array, shape (m,), seconds on the recording clock; positions : (m, 3);
+    sigma : (m,), metres; period_s : the motion's period."""
+
+    times_s: np.ndarray
+    positions: np.ndarray
+    sigma: np.ndarray
+    period_s: float
+
+    @classmethod
+    def from_message(cls, pred: MotionPrediction) -> PredictedPath:
+        if len(pred.samples) < 3:
+            raise ValueError(f"prediction has {len(pred.samples)} samples, need at least 3")
+        s = pred.samples
+        return cls(np.array([x.t_ns for x in s]) * 1e-9,
+                   np.array([[x.x, x.y, x.z] for x in s]), np.array([x.sigma for x in s]),
+                   pred.period_s)
+
+    def at(self, t: float | np.ndarray) -> np.ndarray:
+        """Position(s) at ``t`` seconds: shape (3,) or (k, 3)."""
+        t = np.atleast_1d(t)
+        out = np.column_stack([np.interp(t, self.times_s, self.positions[:, i])
+                               for i in range(3)])
+        return out[0] if out.shape[0] == 1 else out
+
+    def velocity(self, t: float) -> np.ndarray:
+        """Velocity (3,) m/s at ``t`` (central difference over one sample spacing)."""
+        h = float(np.median(np.diff(self.times_s)))
+        return (self.at(t + h / 2) - self.at(t - h / 2)) / h
+
+
+def grasp_times(path: PredictedPath, earliest_s: float, rule: str) -> list[float]:
+    """Candidate grasp times, best first.
+
+    ``period``: one period ahead, as the paper (Δt = T), then later samples. ``slowest``: the
+    samples at or after ``earliest_s`` ordered by the object's predicted speed (a slow object
+    forgives timing errors), ties broken by the smaller sigma.
+    """
+    t0 = path.times_s[0]
+    usable = path.times_s[path.times_s >= earliest_s]
+    if not len(usable):
+        return []
+    if rule == "period":
+        first = t0 + path.period_s
+        return sorted(usable, key=lambda t: (t < first - 1e-9, abs(t - first)))
+    if rule != "slowest":
+        raise ValueError(f"grasp time rule must be 'period' or 'slowest', got {rule!r}")
+    speed = np.array([np.linalg.norm(path.velocity(t)) for t in usable])
+    sigma = np.interp(usable, path.times_s, path.sigma)
+    return [float(usable[i]) for i in np.lexsort((sigma, speed))]
+
+
+def motion_direction(path: PredictedPath, t: float) -> np.ndarray:
+    """Unit direction the object moves in as it arrives at ``t``; when it is (nearly) at rest,
+    the main axis of its predicted swing, signed like the velocity just before ``t``."""
+    v = path.velocity(t)
+    if np.linalg.norm(v) > 0.02:
+        return v / np.linalg.norm(v)
+    p = path.positions - path.positions.mean(axis=0)
+    axis = np.linalg.eigh(p.T @ p)[1][:, -1]
+    before = path.velocity(t - 0.1)
+    return axis if axis @ before >= 0 else -axis
+
+
+def offset_directions(d: np.ndarray, towards: np.ndarray, count: int = 8) -> list[np.ndarray]:
+    """Unit vectors n ⟂ ``d``, the one closest to ``towards`` first, then around ``d``."""
+    ref = towards - (towards @ d) * d
+    if np.linalg.norm(ref) < 1e-6:
+        ref = np.cross(d, [0.0, 0.0, 1.0])
+    e1 = ref / np.linalg.norm(ref)
+    e2 = np.cross(d, e1)
+    angles = sorted(np.linspace(0, 2 * np.pi, count, endpoint=False),
+                    key=lambda a: min(a, 2 * np.pi - a))
+    return [np.cos(a) * e1 + np.sin(a) * e2 for a in angles]
+
+
+def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15,
+              count: int = 4, beta: float = 0.03, final_m: float = 0.06) -> np.ndarray:
+    """P_init, the intermediate P_i (equation 9, β_i bowing outwards along n, largest midway)
+    and the pre-grasp point ``final_m`` ahead of the object along its motion ``d``, then P_f.
+
+    Returns array, shape (count + 2, 3): the last move, pre-grasp → P_f, is along −d.
+    """
+    p_init = p_f + alpha * n
+    pre = p_f + final_m * d
+    points = [p_init]
+    for i in range(1, count):
+        s = i / count
+        points.append(p_init + s * (pre - p_init) + beta * np.sin(np.pi * s) * n)
+    points += [pre, p_f]
+    return np.array(points)
