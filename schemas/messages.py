@@ -135,6 +135,8 @@ class GraspPlan(Message):
     joint_trajectory: list[JointSample] = Field(default_factory=list)
     cartesian_path: list[CartesianSample] = Field(default_factory=list)
     confidence: float = 0.0
+    waypoints: list[Vec3] = Field(default_factory=list,
+                                  description="P_init, the P_i, the pre-grasp point, P_f; world")
 
 
 class GateDecision(Message):

@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "recorder": ("wavegrasp.recorder.main", "record every message on the bus to run.mcap"),
     "perception": ("wavegrasp.perception.main", "point clouds -> the object's centroid and mesh"),
     "predictor": ("wavegrasp.predictor.main", "centroids -> the object's motion a period ahead"),
+    "planner": ("wavegrasp.planner.main", "predictions -> a grasp and its timed trajectory"),
     "gate": ("wavegrasp.gate.main", "plans -> go / no-go (prediction error, freshness, health)"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),

@@ -44,8 +44,8 @@ def test_launcher_reads_services_in_dependency_order() -> None:
     assert services["player"].command[4] == "realtime"  # the default applies when unset
     assert services["player"].labels["wavegrasp.ends-run"] == "true"
     assert services["player"].depends_on == {
-        "recorder": "service_healthy", "perception": "service_healthy",
-        "predictor": "service_healthy"}
+        name: "service_healthy"
+        for name in ("recorder", "perception", "predictor", "planner", "gate")}
 
 
 def test_interpolation_follows_compose_rules() -> None:

@@ -67,7 +67,7 @@ def test_garbage_on_every_subscribed_key_is_counted(long_recording: Path, tmp_pa
             while not bus.inbox.empty():
                 bus.dispatch(bus.inbox.get())
 
-        services = ["recorder", "perception", "predictor", "player"]
+        services = ["recorder", "perception", "predictor", "planner", "gate", "player"]
         assert wait_until(lambda: (pump(), all(s in stats for s in services))[1], timeout=30)
         sent: dict[str, int] = {}
         for key in sorted({k for s in services for k in keys_to_fuzz(stats[s].subscriptions)}):

@@ -49,7 +49,8 @@ class PredictedPath:
 def grasp_times(path: PredictedPath, earliest_s: float, rule: str) -> list[float]:
     """Candidate grasp times, best first.
 
-    ``period``: one period ahead, as the paper (Δt = T), then later samples. ``slowest``: the
+    ``period``: one period ahead, as the paper (Δt = T), or whole periods later when the arm
+    needs longer, each then followed by the samples nearest it. ``slowest``: the
     samples at or after ``earliest_s`` ordered by the object's predicted speed (a slow object
     forgives timing errors), ties broken by the smaller sigma.
     """
@@ -58,8 +59,9 @@ def grasp_times(path: PredictedPath, earliest_s: float, rule: str) -> list[float
     if not len(usable):
         return []
     if rule == "period":
-        first = t0 + path.period_s
-        return sorted(usable, key=lambda t: (t < first - 1e-9, abs(t - first)))
+        k = max(1, int(np.ceil((usable[0] - t0) / path.period_s - 1e-9)))
+        target = t0 + k * path.period_s
+        return [float(t) for t in sorted(usable, key=lambda t: abs(t - target))]
     if rule != "slowest":
         raise ValueError(f"grasp time rule must be 'period' or 'slowest', got {rule!r}")
     speed = np.array([np.linalg.norm(path.velocity(t)) for t in usable])

@@ -27,7 +27,7 @@ from wavegrasp.planner.timing import Limits, sample_path, sample_segment, segmen
 class PlannerConfig(BaseModel):
     grasp_time: str = Field("slowest", description="'slowest' or 'period' (the paper's Δt = T)")
     min_lead_s: float = Field(0.6, description="no grasp sooner than this after planning")
-    start_delay_s: float = Field(0.1, description="time allowed for approval before moving")
+    start_delay_s: float = Field(0.25, description="time for the plan to be approved and sent")
     alpha_m: float = 0.12
     waypoint_count: int = 3
     beta_m: float = 0.02
@@ -36,8 +36,8 @@ class PlannerConfig(BaseModel):
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
-    max_times: int = 4
-    max_offsets: int = 4
+    max_times: int = 3
+    max_offsets: int = 3
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -73,38 +73,51 @@ def grasp_pose(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
     return T
 
 
-def segment_point_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> float:
+def segment_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> float:
+    """Smallest distance from the segment p0-p1 to the points ``c`` (k, 3)."""
     d = p1 - p0
     s = np.clip((c - p0) @ d / max(d @ d, 1e-12), 0.0, 1.0)
-    return float(np.linalg.norm(p0 + s * d - c))
+    return float(np.min(np.linalg.norm(p0 + s[:, None] * d - c, axis=1)))
 
 
 def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
-             path: PredictedPath, radius: float, clearance: float, final_from: float) -> bool:
-    """Does any link come within ``radius + clearance`` of the object's predicted centroid?
+             path: PredictedPath, body: tuple[float, float, np.ndarray | None],
+             clearance: float, final_from: float) -> bool:
+    """Does any link come within ``clearance`` of the object along its predicted path?
 
-    Before ``final_from`` every link counts; during the final move the jaws and the wrist
-    (the last three capsules) may close in: that is the grasp.
+    ``body`` = (radius, half length, axis): a sphere, or a capsule along the axis (points on
+    its axis stand for it). Before ``final_from`` every link counts; during the final move
+    the jaws and the wrist (the last three capsules) may close in: that is the grasp.
     """
+    radius, half, axis = body
+    spine = np.linspace(-1.0, 1.0, 5)[:, None] * max(half - radius, 0.0) * (
+        axis if axis is not None else np.zeros(3))
     R, t = T_world_base[:3, :3], T_world_base[:3, 3]
     for ti, qi in zip(times[::2], q[::2], strict=True):
-        centre = path.at(min(ti, path.times_s[-1]))
+        centre = path.at(min(ti, path.times_s[-1])) + spine
         capsules = arm.link_capsules(qi)
         if ti >= final_from:
             capsules = capsules[:-3]
         for p0, p1, r in capsules:
-            if segment_point_distance(R @ p0 + t, R @ p1 + t, centre) < radius + r + clearance:
+            if segment_points_distance(R @ p0 + t, R @ p1 + t, centre) < radius + r + clearance:
                 return True
     return False
 
 
 def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.ndarray,
-               q_now: np.ndarray, radius: float, cfg: PlannerConfig) -> Plan | Counter:
-    """The best feasible plan, or a Counter of why every candidate was rejected."""
+               q_now: np.ndarray, body: tuple[float, float, np.ndarray | None],
+               cfg: PlannerConfig) -> Plan | Counter:
+    """The best feasible plan, or a Counter of why every candidate was rejected.
+
+    body : (radius, half length, unit axis or None) of the object, metres, world.
+    """
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     T_base_world = np.linalg.inv(T_world_base)
     base_world = T_world_base[:3, 3]
     rejected: Counter = Counter()
+    if np.linalg.norm(path.positions - base_world, axis=1).min() > arm.reach_m + 0.2:
+        rejected["unreachable"] += 1
+        return rejected
     # No grasp sooner than the arm could get there: from its tool to P_init at a modest
     # Cartesian speed, then the approach itself.
     tool_world = (T_world_base @ arm.forward(q_now))[:3, 3]
@@ -167,7 +180,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
             qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
             final_from = t_g - d_path * (1 - approach.spline.x[-2])
-            if collides(arm, T_world_base, times, q, path, radius, cfg.clearance_m, final_from):
+            if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
                 rejected["collision"] += 1
                 continue
             tool = np.array([(T_world_base @ arm.forward(qi))[:3, 3] for qi in q])

@@ -1,0 +1,83 @@
+"""The planner against ground truth: offline over a recording, or from a run's messages."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+from wavegrasp.arm import ArmModel
+from wavegrasp.perception.evaluate import Track
+from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.predictor.models import make_predictor
+from wavegrasp.recording_io.ros_msgs import decode_pose
+
+
+@dataclass
+class PlannerScore:
+    """Per warm prediction: planned or not, planning time (ms), |P_f − truth at t_grasp| (m)."""
+
+    attempts: int
+    plans: int
+    times_ms: np.ndarray
+    grasp_errors: np.ndarray
+
+
+def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.ndarray | None],
+          warmup_s: float = 10.0, cfg: PlannerConfig | None = None) -> PlannerScore:
+    """Feed perception's centroids to the default predictor and plan on every warm forecast
+    after ``warmup_s``, from the arm's standby pose (as the planner does until arm states
+    arrive). ``body``: the object's (radius, half length, axis), as perception reports it."""
+    cfg = cfg or PlannerConfig()
+    arm, predictor = ArmModel.load(), make_predictor("blend")
+    t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
+    times, errors, attempts = [], [], 0
+    for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
+        if np.isnan(centre[0]):
+            continue
+        t = (stamp - track.stamps_ns[0]) * 1e-9
+        f = predictor.update(t, centre, sigma)
+        if f is None or not f.warm or t < warmup_s:
+            continue
+        attempts += 1
+        path = PredictedPath(f.t0 + f.leads, f.positions, np.nan_to_num(f.sigma, nan=1.0),
+                             f.period_s)
+        start = time.perf_counter()
+        plan = plan_grasp(path, t, arm, T_world_base, arm.q_home, body, cfg)
+        times.append((time.perf_counter() - start) * 1e3)
+        if isinstance(plan, Plan) and plan.t_grasp <= t_truth[-1]:
+            truth = np.array([np.interp(plan.t_grasp, t_truth, track.truth[:, i])
+                              for i in range(3)])
+            errors.append(np.linalg.norm(plan.grasp_T_world[:3, 3] - truth))
+    return PlannerScore(attempts, len(errors), np.array(times), np.array(errors))
+
+
+def approved_grasp_errors(run_mcap: Path) -> np.ndarray:
+    """|grasp position − true centroid at t_grasp| (m) for every plan the gate approved."""
+    plans, approved, truth = {}, set(), {}
+    with Path(run_mcap).open("rb") as f:
+        for _, channel, msg in make_reader(f).iter_messages(log_time_order=False, topics=[
+                "wavegrasp/planner/plan", "wavegrasp/gate/decision", "/groundtruth/object"]):
+            if channel.topic == "/groundtruth/object":
+                T, _, stamp = decode_pose(msg.data)
+                truth[stamp] = T[:3, 3]
+            elif channel.topic.endswith("plan"):
+                d = json.loads(msg.data)
+                p = d["grasp"]["position"]
+                plans[d["plan_id"]] = (d["t_grasp_ns"], np.array([p["x"], p["y"], p["z"]]))
+            elif json.loads(msg.data)["go"]:
+                approved.add(json.loads(msg.data)["plan_id"])
+    stamps = np.array(sorted(truth))
+    positions = np.array([truth[s] for s in stamps])
+    errors = []
+    for plan_id in approved & set(plans):
+        t_grasp, position = plans[plan_id]
+        if stamps[0] <= t_grasp <= stamps[-1]:
+            true = [np.interp(t_grasp, stamps, positions[:, i]) for i in range(3)]
+            errors.append(np.linalg.norm(position - true))
+    return np.array(errors)

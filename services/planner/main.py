@@ -1,0 +1,157 @@
+"""``wavegrasp planner``: predictions -> a grasp and the timed joint trajectory to it.
+
+For each warm ``wavegrasp/predictor/prediction`` while no approved plan is executing, plans a
+grasp (:func:`~wavegrasp.planner.plan.plan_grasp`) for the arm on its mount from ``tf_static``,
+starting from its latest ``wavegrasp/sim/arm_state`` (its standby pose until one arrives), and
+publishes it on ``wavegrasp/planner/plan``. The arm model is ours unless ``WAVEGRASP_ARM_URDF``
+names the vehicle's own description.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.arm import ArmModel
+from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import derived_header
+from wavegrasp.schemas import (
+    ArmState,
+    CartesianSample,
+    GateDecision,
+    GraspOutcome,
+    GraspPlan,
+    JointSample,
+    MotionPrediction,
+    ObjectObservation,
+    Pose,
+    Quaternion,
+    Vec3,
+)
+
+PLAN_KEY = "wavegrasp/planner/plan"
+
+
+class PlannerSettings(Settings):
+    arm_urdf: str | None = None
+    execution_hold_s: float = 1.5
+
+
+def vec(p: np.ndarray) -> Vec3:
+    return Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
+               service: str) -> GraspPlan:
+    ns = lambda t: int(round(t * 1e9))  # noqa: E731
+    q = Rotation.from_matrix(plan.grasp_T_world[:3, :3]).as_quat()
+    return GraspPlan(
+        header=derived_header(pred.header, service, recv_ns),
+        plan_id=f"{pred.header.seq}-{ns(plan.t_grasp)}", t_start_ns=ns(plan.t_start),
+        t_grasp_ns=ns(plan.t_grasp),
+        grasp=Pose(position=vec(plan.grasp_T_world[:3, 3]),
+                   orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+        approach=vec(plan.approach), joint_names=list(arm.joint_names),
+        joint_trajectory=[JointSample(t_ns=ns(t), positions=qi.tolist(), velocities=vi.tolist())
+                          for t, qi, vi in zip(plan.times, plan.q, plan.qd, strict=True)],
+        cartesian_path=[CartesianSample(t_ns=ns(t), x=p[0], y=p[1], z=p[2])
+                        for t, p in zip(plan.times, plan.tool, strict=True)],
+        confidence=plan.confidence, waypoints=[vec(p) for p in plan.points])
+
+
+class PlannerService(Service):
+    def __init__(self, settings: PlannerSettings, bus: Bus | None = None) -> None:
+        self.arm = ArmModel.load(settings.arm_urdf or None)  # before the bus: fail cleanly
+        super().__init__(settings, bus)
+        self.cfg = settings
+        self.config = PlannerConfig()
+        self.tf = StaticTransforms()
+        self.q_now = self.arm.q_home.copy()
+        self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
+        self.busy_until_ns = 0
+        self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
+        self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
+        self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
+        self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+        self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
+        self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
+                           MotionPrediction)
+        self._t_grasp: dict[str, int] = {}
+        self._pending: tuple[MotionPrediction, Delivery] | None = None
+
+    def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
+        if msg.radius_m is not None:  # the object's size and axis, for the collision check
+            axis = None if msg.axis is None else np.array([msg.axis.x, msg.axis.y, msg.axis.z])
+            self.body = (msg.radius_m, (msg.length_m or 2 * msg.radius_m) / 2, axis)
+
+    def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
+        by_name = dict(zip(msg.joint_names, msg.positions, strict=True))
+        missing = [n for n in self.arm.joint_names if n not in by_name]
+        if missing:
+            raise ValueError(f"arm_state lacks joints {', '.join(missing)}")
+        self.q_now = np.array([by_name[n] for n in self.arm.joint_names])
+
+    def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
+        if msg.go:
+            hold = int(self.cfg.execution_hold_s * 1e9)
+            self.busy_until_ns = self._t_grasp.get(msg.plan_id, self.clock.now_ns()) + hold
+
+    def on_outcome(self, _msg: GraspOutcome, _d: Delivery) -> None:
+        self.busy_until_ns = 0
+
+    def on_prediction(self, msg: MotionPrediction, d: Delivery) -> None:
+        """Keep only the newest: planning takes longer than predictions come when candidates
+        fail, and a plan from an older prediction would only be late."""
+        if self._pending is not None:
+            self.counters["skipped: superseded"] += 1
+        self._pending = (msg, d)
+
+    def on_tick(self) -> None:
+        if self._pending is not None:
+            msg, d = self._pending
+            self._pending = None
+            try:
+                self.plan(msg, d)
+            except ValueError as exc:
+                self.bus.count_bad("wavegrasp/predictor/prediction", str(exc))
+
+    def plan(self, msg: MotionPrediction, d: Delivery) -> None:
+        if not msg.warm or msg.header.stamp_ns < self.busy_until_ns:
+            self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
+            return
+        try:
+            T_world_base = self.tf.lookup("world", self.arm.base_link)
+        except ValueError as exc:
+            self.counters["skipped: no arm mount"] += 1
+            raise ValueError(f"no transform to the arm's mount: {exc}") from None
+        result = plan_grasp(PredictedPath.from_message(msg), msg.header.stamp_ns * 1e-9,
+                            self.arm, T_world_base, self.q_now, self.body, self.config)
+        if not isinstance(result, Plan):
+            self.counters["no plan"] += 1
+            for reason, n in result.items():
+                self.counters[f"rejected: {reason}"] += n
+            return
+        self.counters["plans"] += 1
+        plan = to_message(result, msg, d.recv_ns, self.arm, self.name)
+        self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
+        self.bus.publish(PLAN_KEY, plan)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argparse.ArgumentParser(prog="wavegrasp planner", description=__doc__).parse_args(argv)
+    try:
+        settings = PlannerSettings.from_env("planner")
+        service = PlannerService(settings)
+    except ValueError as exc:
+        print(f"wavegrasp planner: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return service.run()

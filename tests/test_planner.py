@@ -1,0 +1,117 @@
+"""Planner: the timed approach of the paper's section IV-F, checked on a known motion."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from wavegrasp.arm import ArmModel
+from wavegrasp.planner.approach import PredictedPath, motion_direction, waypoints
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.wavetank.record import arm_mount
+
+OMEGA = 2 * np.pi / 1.08
+BODY = (0.033, 0.061, np.array([0.0, 0.0, 1.0]))  # the 355 ml can, upright
+
+
+def swing(t: np.ndarray, centre=(0.0, 0.0, 0.525)) -> np.ndarray:
+    """A tethered can's centroid: 6 cm swing along x, rising twice per swing (n, 3)."""
+    return np.column_stack([centre[0] + 0.06 * np.sin(OMEGA * t),
+                            centre[1] + 0.003 * np.sin(OMEGA * t + 1.0),
+                            centre[2] - 0.004 * np.cos(2 * OMEGA * t)])
+
+
+def prediction(now: float, centre=(0.0, 0.0, 0.525)) -> PredictedPath:
+    t = now + np.arange(31) * 0.1
+    return PredictedPath(t, swing(t, centre), np.full(31, 0.002), 2 * np.pi / OMEGA)
+
+
+@pytest.fixture(scope="module")
+def arm() -> ArmModel:
+    return ArmModel.load()
+
+
+@pytest.fixture(scope="module")
+def T_world_base() -> np.ndarray:
+    position, quat = arm_mount()
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(quat).as_matrix()
+    T[:3, 3] = position
+    return T
+
+
+@pytest.mark.parametrize("rule,least", [("slowest", 10), ("period", 3)])
+def test_plans_at_most_phases_of_the_swing(arm: ArmModel, T_world_base: np.ndarray,
+                                           rule: str, least: int) -> None:
+    """The default (grasp where the object is slowest) plans at every phase of a swing; the
+    paper's whole-period rule only where the object then moves a reachable way."""
+    phases = 10.0 + np.arange(11) * 0.1  # one whole swing
+    planned = [isinstance(plan_grasp(prediction(now), now, arm, T_world_base, arm.q_home, BODY,
+                                     PlannerConfig(grasp_time=rule)), Plan) for now in phases]
+    assert sum(planned) >= least, planned
+
+
+@pytest.mark.parametrize("now", [10.0, 10.4, 10.8])
+@pytest.mark.parametrize("rule", ["slowest", "period"])
+def test_trajectory_passes_the_waypoints_on_time_within_limits(
+        arm: ArmModel, T_world_base: np.ndarray, now: float, rule: str) -> None:
+    path = prediction(now)
+    cfg = PlannerConfig(grasp_time=rule)
+    plan = plan_grasp(path, now, arm, T_world_base, arm.q_home, BODY, cfg)
+    if not isinstance(plan, Plan):
+        pytest.skip(f"no plan at this phase: {dict(plan)} (the rate is tested above)")
+    # On time: it starts after approval can arrive and ends exactly at the grasp time.
+    assert plan.t_start >= now + cfg.start_delay_s - 1e-9
+    assert plan.times[0] == pytest.approx(plan.t_start) and plan.times[-1] == plan.t_grasp
+    assert np.all(np.diff(plan.times) > 0)
+    # P_f is the predicted position at the grasp time, and the tool ends there.
+    p_f = path.at(plan.t_grasp)
+    np.testing.assert_allclose(plan.points[-1], p_f, atol=1e-9)
+    assert np.linalg.norm(plan.tool[-1] - p_f) < 0.002
+    # P_init is offset from P_f orthogonally to the motion (equation 8) by α.
+    d = motion_direction(path, plan.t_grasp)
+    offset = plan.points[0] - p_f
+    assert np.linalg.norm(offset) == pytest.approx(cfg.alpha_m)
+    assert abs(offset @ d) < 1e-9
+    # The tool passes through every waypoint (the path is sampled every 20 ms).
+    for point in plan.points:
+        assert np.min(np.linalg.norm(plan.tool - point, axis=1)) < 0.005
+    # The last move, pre-grasp point to P_f, goes against the object's motion.
+    pre = plan.points[-2]
+    assert (p_f - pre) @ d / np.linalg.norm(p_f - pre) < -0.99
+    last = plan.tool[plan.times >= plan.times[-1] - 0.1]
+    assert (last[-1] - last[0]) @ d < 0
+    # Joint limits: positions, velocities, and (sampled) accelerations.
+    assert np.all(plan.q >= arm.lower - 1e-9) and np.all(plan.q <= arm.upper + 1e-9)
+    assert np.all(np.abs(plan.qd) <= arm.max_velocity * (1 + 1e-6))
+    dt = np.diff(plan.times)[:, None]
+    acc = np.diff(plan.qd, axis=0) / dt
+    assert np.all(np.abs(acc) <= arm.max_acceleration * 1.05)
+
+
+def test_waypoints_follow_equations_8_and_9() -> None:
+    p_f, n, d = np.array([0.1, 0.0, 0.5]), np.array([0.0, -1.0, 0.0]), np.array([1.0, 0, 0])
+    pts = waypoints(p_f, n, d, alpha=0.12, count=3, beta=0.0, final_m=0.05)
+    np.testing.assert_allclose(pts[0], p_f + 0.12 * n)
+    pre = p_f + 0.05 * d
+    for i in (1, 2):  # with β = 0, P_i lies on the line from P_init to the pre-grasp point
+        np.testing.assert_allclose(pts[i], pts[0] + i / 3 * (pre - pts[0]))
+    np.testing.assert_allclose(pts[-2:], [pre, p_f])
+
+
+def test_unreachable_object_is_rejected_with_the_reason(arm: ArmModel,
+                                                        T_world_base: np.ndarray) -> None:
+    far = prediction(10.0, centre=(3.0, 3.0, 0.5))
+    result = plan_grasp(far, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
+    assert isinstance(result, Counter) and result["unreachable"] > 0
+
+
+def test_too_short_a_horizon_cannot_be_timed(arm: ArmModel, T_world_base: np.ndarray) -> None:
+    path = prediction(10.0)
+    short = PredictedPath(path.times_s[:6], path.positions[:6], path.sigma[:6], path.period_s)
+    result = plan_grasp(short, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
+    assert isinstance(result, Counter) and not isinstance(result, Plan)
