@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
-from wavegrasp.arm.checks import check_positive
 from wavegrasp.arm.urdf import UrdfJoint
+from wavegrasp.checks import check_positive
 
 #: Defaults for a URDF that does not state a limit (or states velocity="0"): per joint type,
 #: rad/s, rad/s^2, rad/s^3 for revolute joints and m/s, m/s^2, m/s^3 for prismatic ones.

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from wavegrasp.arm import ik
-from wavegrasp.arm.checks import check_transform, check_unit, check_vector
 from wavegrasp.arm.kinematics import Chain
 from wavegrasp.arm.limits import Joint, apply_overrides, joint_limits
 from wavegrasp.arm.urdf import DEFAULT_RADIUS, UrdfRobot, parse_urdf
+from wavegrasp.checks import check_transform, check_unit, check_vector
 
 __all__ = ["ArmModel", "Joint", "DEFAULT_URDF"]
 

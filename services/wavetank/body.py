@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wavegrasp.wavetank.checks import check_positive
+from wavegrasp.checks import check_positive
 from wavegrasp.wavetank.waves import RHO, G, Sea
 
 

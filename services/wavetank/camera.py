@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import ConvexHull
 
-from wavegrasp.wavetank.checks import check_fraction, check_positive, check_transform
+from wavegrasp.checks import check_fraction, check_positive, check_transform
 
 Mesh = o3d.t.geometry.TriangleMesh
 

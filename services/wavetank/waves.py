@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from wavegrasp.wavetank.checks import check_positive
+from wavegrasp.checks import check_positive
 
 G = 9.81  # m/s²
 RHO = 1000.0  # kg/m³, fresh water as in the tank

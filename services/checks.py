@@ -1,4 +1,4 @@
-"""Input checks for the arm's modules; each raises ValueError naming the problem."""
+"""Input checks shared by the packages; each raises ValueError naming the problem."""
 
 from __future__ import annotations
 
@@ -45,3 +45,9 @@ def check_positive(name: str, value: float) -> float:
     if not (np.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     return value
+
+
+def check_fraction(name: str, value: float) -> None:
+    """Raise ValueError unless 0 <= `value` < 1."""
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{name} must be in [0, 1), got {value!r}")
