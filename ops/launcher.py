@@ -57,6 +57,7 @@ class Launcher:
         self.stats: dict[str, dict] = {}
         self.player_status: dict = {}
         self.interrupted = threading.Event()
+        self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
         self._pumps: list[threading.Thread] = []
 
     def log(self, text: str) -> None:
@@ -152,6 +153,7 @@ class Launcher:
                     proc.wait(STOP_TIMEOUT_S)
                 except subprocess.TimeoutExpired:
                     self.log(f"{name} did not stop in {STOP_TIMEOUT_S:.0f} s: killing it")
+                    self.killed.append(name)
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait()
             with contextlib.suppress(ProcessLookupError):  # anything the service started
@@ -219,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         crashed = launcher.crashed()
         launcher.stop_all()
+        crashed += launcher.killed
     codes = {n: p.returncode for n, p in launcher.procs.items()}
     summary = {
         "recording": str(recording), "pace": args.pace, "out": str(out),

@@ -15,6 +15,7 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
@@ -74,13 +75,14 @@ class Recorder(Service):
         log.info("recording to %s", self.path)
 
     def _channel(self, topic: str, encoding: str, schema_name: str, schema_encoding: str,
-                 schema_data: str) -> int:
+                 schema_data: Callable[[], str]) -> int:
+        """The channel for ``topic``, registered (with its schema) on first use."""
         channel = self._channels.get(topic)
         if channel is None:
             key = (schema_name, schema_encoding)
             if key not in self._schemas:
                 self._schemas[key] = self.writer.register_schema(
-                    schema_name, schema_encoding, schema_data.encode())
+                    schema_name, schema_encoding, schema_data().encode())
             channel = self.writer.register_channel(topic, encoding, self._schemas[key])
             self._channels[topic] = channel
         return channel
@@ -103,7 +105,7 @@ class Recorder(Service):
         except Exception as exc:  # rosbags raises many types on garbage
             raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
-        channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", msgdef)
+        channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
         self.writer.add_message(channel, log_time, d.payload, log_time,
                                 sequence=(att.seq if att else 0) & 0xFFFFFFFF)
         self.written += 1
@@ -128,7 +130,7 @@ class Recorder(Service):
         log_time = msg.header.stamp_ns if isinstance(msg, Clock) else self.clock.now_ns()
         publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
         channel = self._channel(d.key, "json", model.__name__, "jsonschema",
-                                schema_text(model.__name__))
+                                lambda: schema_text(model.__name__))
         self.writer.add_message(channel, log_time, d.payload, publish_time)
         self.written += 1
 
