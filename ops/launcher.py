@@ -154,6 +154,9 @@ class Launcher:
                 except subprocess.TimeoutExpired:
                     self.log(f"{name} did not stop in {STOP_TIMEOUT_S:.0f} s: killing it")
                     self.killed.append(name)
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(proc.pid, signal.SIGUSR1)  # its stacks, into its log
+                    time.sleep(0.5)
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait()
             with contextlib.suppress(ProcessLookupError):  # anything the service started

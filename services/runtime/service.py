@@ -7,6 +7,7 @@ can call handlers directly or run the loop over a real zenoh session.
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import queue
 import signal
@@ -109,6 +110,8 @@ class Service:
         """Serve until stopped; returns the process exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stopping.set())
+        # SIGUSR1 prints every thread's stack: the launcher asks before it kills a stuck service.
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
         try:
             self.bus.declare_alive()
             self.on_start()
