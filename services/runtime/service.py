@@ -104,12 +104,25 @@ class Service:
         """The service's main loop; returns an exit code. Sources (the player) override it."""
         while not self.stopping.is_set():
             self.step(self.tick_period_s)
+            self.handle_signals()
         return self.exit_code
+
+    def handle_signals(self) -> None:
+        """Install (again) the SIGINT/SIGTERM handlers that stop the loop.
+
+        Again, because a native library may take the process's handlers over after start-up
+        (seen: a service that had processed data no longer stopped on SIGTERM); installing
+        them is one cheap system call each.
+        """
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, *_: object) -> None:
+        self.stopping.set()
 
     def run(self) -> int:
         """Serve until stopped; returns the process exit code."""
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stopping.set())
+        self.handle_signals()
         # SIGUSR1 prints every thread's stack: the launcher asks before it kills a stuck service.
         faulthandler.register(signal.SIGUSR1, all_threads=True)
         try:
