@@ -150,7 +150,13 @@ class Launcher:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGTERM)
                 try:
-                    proc.wait(STOP_TIMEOUT_S)
+                    proc.wait(STOP_TIMEOUT_S / 2)
+                except subprocess.TimeoutExpired:
+                    # Seen rarely: a SIGTERM that never reaches the service's handler.
+                    self.log(f"{name} still running after SIGTERM: sending it again")
+                    os.killpg(proc.pid, signal.SIGTERM)
+                try:
+                    proc.wait(STOP_TIMEOUT_S / 2)
                 except subprocess.TimeoutExpired:
                     self.log(f"{name} did not stop in {STOP_TIMEOUT_S:.0f} s: killing it")
                     self.killed.append(name)
