@@ -45,6 +45,7 @@ def test_pybullet_forward_kinematics_matches(arm: ArmModel) -> None:
             state = pb.getLinkState(body, link_index["tool"], computeForwardKinematics=True,
                                     physicsClientId=client)
             T = arm.forward(q)
+            np.testing.assert_allclose(arm.forward_batch(np.array([q, q]))[1], T, atol=1e-12)
             R = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
             assert np.allclose(state[4], T[:3, 3], atol=1e-6)
             assert np.allclose(R, T[:3, :3], atol=1e-6)
@@ -176,3 +177,21 @@ def test_reach_and_capsules(arm: ArmModel) -> None:
     closed = arm.link_capsules(arm.q_home, jaw_opening_m=0.0)
     gap = np.linalg.norm(closed[-1][0] - closed[-2][0])
     assert gap < np.linalg.norm(capsules[-1][0] - capsules[-2][0])
+
+
+def test_capsules_batch_matches_one_at_a_time(arm: ArmModel) -> None:
+    rng = np.random.default_rng(4)
+    qs = np.array([random_q(arm, rng) for _ in range(5)])
+    p0, p1, radius = arm.capsules_batch(qs, jaw_opening_m=0.05)
+    for k, q in enumerate(qs):
+        one = arm.link_capsules(q, jaw_opening_m=0.05)
+        np.testing.assert_allclose(p0[k], [c[0] for c in one], atol=1e-12)
+        np.testing.assert_allclose(p1[k], [c[1] for c in one], atol=1e-12)
+        np.testing.assert_allclose(radius, [c[2] for c in one])
+    # The hand moves with the tool: its capsules sit still in the tool frame.
+    hand0, hand1, _ = arm.hand_capsules
+    T = arm.forward(qs[0])
+    palm = [c for c in arm.link_capsules(qs[0])[:-arm.jaw_capsule_count]
+            if np.allclose(c[0], T[:3, :3] @ hand0[0] + T[:3, 3], atol=1e-9)]
+    assert len(palm) == 1
+    np.testing.assert_allclose(palm[0][1], T[:3, :3] @ hand1[0] + T[:3, 3], atol=1e-9)

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.planner.approach import PredictedPath, motion_direction, waypoints
+from wavegrasp.planner.approach import (
+    PredictedPath,
+    grasp_orientations,
+    motion_direction,
+    perpendicular,
+    waypoints,
+)
+from wavegrasp.planner.collision import extent, hand_hits
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.wavetank.record import arm_mount
 
@@ -72,10 +79,12 @@ def test_trajectory_passes_the_waypoints_on_time_within_limits(
     p_f = path.at(plan.t_grasp)
     np.testing.assert_allclose(plan.points[-1], p_f, atol=1e-9)
     assert np.linalg.norm(plan.tool[-1] - p_f) < 0.002
-    # P_init is offset from P_f orthogonally to the motion (equation 8) by α.
+    # P_init is offset from P_f orthogonally to the motion (equation 8) by α: alpha_m beyond
+    # the object's surface on that side.
     d = motion_direction(path, plan.t_grasp)
     offset = plan.points[0] - p_f
-    assert np.linalg.norm(offset) == pytest.approx(cfg.alpha_m)
+    n = offset / np.linalg.norm(offset)
+    assert np.linalg.norm(offset) == pytest.approx(cfg.alpha_m + extent(BODY, n))
     assert abs(offset @ d) < 1e-9
     # The tool passes through every waypoint (the path is sampled every 20 ms).
     for point in plan.points:
@@ -115,3 +124,31 @@ def test_too_short_a_horizon_cannot_be_timed(arm: ArmModel, T_world_base: np.nda
     short = PredictedPath(path.times_s[:6], path.positions[:6], path.sigma[:6], path.period_s)
     result = plan_grasp(short, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
     assert isinstance(result, Counter) and not isinstance(result, Plan)
+
+
+@pytest.mark.parametrize("axis", [None, np.array([0.0, 0.0, 1.0]), np.array([0.6, 0.0, 0.8])])
+def test_grasp_orientations_close_across_the_motion_and_the_axis(axis) -> None:
+    d = np.array([0.96, 0.0, -0.28])
+    preferred = -perpendicular(d, np.array([0.0, -0.4, 1.0]))
+    frames = grasp_orientations(d, axis, preferred)
+    assert frames
+    for R in frames:
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert abs(R[:, 0] @ d) < 1e-9  # the final move, along -d, stays inside the slot
+        if axis is not None:
+            assert abs(R[:, 0] @ axis) < 1e-9  # the jaws close across a cylinder
+        assert R[:, 2] @ d <= 1e-9 and R[:, 2][2] < 0.5  # never from behind, never from below
+    scores = [R[:, 2] @ preferred for R in frames]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_the_palm_meets_an_upright_bottle_from_above_but_not_from_the_side(
+        arm: ArmModel) -> None:
+    bottle = (0.032, 0.08, np.array([0.0, 0.0, 1.0]))
+    down, side = np.eye(4), np.eye(4)
+    down[:3, :3] = np.diag([1.0, -1.0, -1.0])  # tool z pointing down at the bottle's top
+    side[:3, :3] = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    assert hand_hits(arm, down, bottle)
+    assert not hand_hits(arm, side, bottle)
+    assert not hand_hits(arm, down, (0.06, 0.06, None))  # the 12 cm buoy fits the jaw

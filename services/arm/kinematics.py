@@ -20,44 +20,59 @@ class Chain:
         self._K = [skew(j.axis) for j in joints]
         self._K2 = [K @ K for K in self._K]
         self._prismatic = np.array([j.type == "prismatic" for j in self.movable])
+        # Per joint: its origin's rotation and offset, and which entry of q moves it (-1: fixed).
+        self._R0 = [j.origin[:3, :3].copy() for j in joints]
+        self._p0 = [j.origin[:3, 3].copy() for j in joints]
+        index = np.cumsum([j.movable for j in joints]) - 1
+        self._q_index = [int(i) if j.movable else -1 for i, j in zip(index, joints, strict=True)]
 
     @property
     def dof(self) -> int:
         return len(self.movable)
 
-    def _motion(self, k: int, value: float) -> np.ndarray:
-        """Transform, shape (4, 4), of joint k (index into `joints`) moved by `value`."""
-        M = np.eye(4)
-        if self.joints[k].type == "prismatic":
-            M[:3, 3] = value * self.joints[k].axis
-        else:
-            M[:3, :3] += math.sin(value) * self._K[k] + (1.0 - math.cos(value)) * self._K2[k]
-        return M
+    def forward_batch(self, q: np.ndarray) -> np.ndarray:
+        """T_base_link for each joint's child link at each of m configurations: q : array,
+        shape (m, n); returns array, shape (m, len(joints), 4, 4), frame base."""
+        m = len(q)
+        out = np.zeros((m, len(self.joints), 4, 4))
+        out[:, :, 3, 3] = 1.0
+        R, p = np.broadcast_to(np.eye(3), (m, 3, 3)), np.zeros((m, 3))
+        for k, joint in enumerate(self.joints):
+            p = p + R @ self._p0[k]
+            R = R @ self._R0[k]
+            i = self._q_index[k]
+            if i >= 0 and joint.type == "prismatic":
+                p = p + q[:, i, None] * (R @ joint.axis)
+            elif i >= 0:
+                s, c = np.sin(q[:, i])[:, None, None], np.cos(q[:, i])[:, None, None]
+                R = R + R @ (s * self._K[k] + (1.0 - c) * self._K2[k])
+            out[:, k, :3, :3], out[:, k, :3, 3] = R, p
+        return out
 
     def forward_all(self, q: np.ndarray) -> list[np.ndarray]:
         """T_base_link for each joint's child link, arrays, shape (4, 4), frame base."""
-        out, T, i = [], np.eye(4), 0
-        for k, joint in enumerate(self.joints):
-            T = T @ joint.origin
-            if joint.movable:
-                T = T @ self._motion(k, q[i])
-                i += 1
-            out.append(T)
-        return out
+        return list(self.forward_batch(np.asarray(q, dtype=float)[None])[0])
 
     def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """T_base_tip, array, shape (4, 4); each movable joint's origin, array, shape (n, 3),
         metres, and unit axis, array, shape (n, 3); all in frame base."""
         n = self.dof
         P, Z = np.empty((n, 3)), np.empty((n, 3))
-        T, i = np.eye(4), 0
+        R, p = np.eye(3), np.zeros(3)
         for k, joint in enumerate(self.joints):
-            T = T @ joint.origin
-            if joint.movable:
-                P[i] = T[:3, 3]
-                Z[i] = T[:3, :3] @ joint.axis
-                T = T @ self._motion(k, q[i])
-                i += 1
+            p = p + R @ self._p0[k]
+            R = R @ self._R0[k]
+            i = self._q_index[k]
+            if i < 0:
+                continue
+            P[i] = p
+            Z[i] = R @ joint.axis
+            if joint.type == "prismatic":
+                p = p + q[i] * Z[i]
+            else:
+                R = R + R @ (math.sin(q[i]) * self._K[k] + (1.0 - math.cos(q[i])) * self._K2[k])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p
         return T, P, Z
 
     def jacobian_at(self, T: np.ndarray, P: np.ndarray, Z: np.ndarray) -> np.ndarray:

@@ -30,7 +30,9 @@ class ArmModel:
     joints then the jaw joints), `jaw_joints`, `jaw_max_opening_m`, `base_link`, `tool_link`,
     `link_names` (the chain's links after the base, the order of :meth:`forward_all`),
     `reach_m` (shoulder to tool with the arm straight: the offsets after the second arm joint),
-    `q_home`, and `lower`, `upper`, `max_velocity`, `max_acceleration`, `max_jerk` (arrays,
+    `q_home`, `hand_capsules` (p0, p1 : arrays, shape (h, 3), metres, frame tool; radius :
+    shape (h,): the links after the last arm joint, jaw fingers excluded), and `lower`,
+    `upper`, `max_velocity`, `max_acceleration`, `max_jerk` (arrays,
     shape (n,), over the arm joints).
     """
 
@@ -66,12 +68,14 @@ class ArmModel:
         self.q_home = np.clip(home, self.lower, self.upper)
         self.reach_m = self._chain.reach_after(min(1, n - 1))
         self._reach_bound = self._chain.reach_after(0)
-        self._shoulder = self._chain.frames(self.q_home)[1][0]  # first joint's origin, fixed
+        #: The first joint's origin, array, shape (3,), metres, frame base_link (it never moves).
+        self.shoulder = self._chain.frames(self.q_home)[1][0]
         rng = np.random.default_rng(0)
         self._restarts = list(rng.uniform(self.lower, self.upper, (N_RESTARTS, n)))
         self._shapes = robot.links
         self._jaw_parent = [self.link_names.index(j.parent) if j.parent in self.link_names
                             else -1 for j in self._jaw]
+        self._capsule_layout()
 
     @classmethod
     def load(cls, path: str | Path | None = None,
@@ -118,6 +122,11 @@ class ArmModel:
         radians)."""
         return self._chain.frames(check_vector("q", q, len(self.joint_names)))[0]
 
+    def forward_batch(self, q: np.ndarray) -> np.ndarray:
+        """T_base_tool at m configurations q (array, shape (m, n), radians): array, shape
+        (m, 4, 4), frame base_link."""
+        return self._chain.forward_batch(np.asarray(q, dtype=float))[:, -1]
+
     def forward_all(self, q: np.ndarray) -> list[np.ndarray]:
         """T_base_link for each link in `link_names`: arrays, shape (4, 4), frame base_link."""
         return self._chain.forward_all(check_vector("q", q, len(self.joint_names)))
@@ -132,28 +141,76 @@ class ArmModel:
                       ) -> list[tuple[np.ndarray, np.ndarray, float]]:
         """Capsules (p0, p1 : arrays, shape (3,), metres, frame base_link; radius, metres)
         around the moving links' collision shapes, jaw fingers included at `jaw_opening_m`
-        (default fully open). A moving link without usable shapes (a mesh) gets a capsule
-        of radius DEFAULT_RADIUS from its origin to the next link's."""
-        frames = self.forward_all(q)
-        out: list[tuple[np.ndarray, np.ndarray, float]] = []
-        moved = {j.child for j in self._chain.movable}
-        for k, (name, T) in enumerate(zip(self.link_names, frames, strict=True)):
-            shapes = self._shapes.get(name, [])
-            if not shapes and name in moved and k + 1 < len(frames):
-                out.append((T[:3, 3], frames[k + 1][:3, 3], DEFAULT_RADIUS))
-            out += [(T[:3, :3] @ c.p0 + T[:3, 3], T[:3, :3] @ c.p1 + T[:3, 3], c.radius)
-                    for c in shapes]
+        (default fully open), the jaw's last (`jaw_capsule_count` of them). A moving link
+        without usable shapes (a mesh) gets a capsule of radius DEFAULT_RADIUS from its
+        origin to the next link's."""
+        p0, p1, radius = self.capsules_batch(
+            check_vector("q", q, len(self.joint_names))[None], jaw_opening_m)
+        return [(a, b, float(r)) for a, b, r in zip(p0[0], p1[0], radius, strict=True)]
+
+    def capsules_batch(self, q: np.ndarray, jaw_opening_m: float | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`link_capsules` at m configurations q (array, shape (m, n), radians):
+        p0, p1 : arrays, shape (m, c, 3), metres, frame base_link; radius : shape (c,)."""
+        chain = self._chain.forward_batch(np.asarray(q, dtype=float))
+        frames = np.concatenate([chain, np.repeat(chain[:, :1], len(self._jaw), axis=1)], axis=1)
         opening = self.jaw_max_opening_m if jaw_opening_m is None else jaw_opening_m
-        for joint, parent in zip(self._jaw, self._jaw_parent, strict=True):
+        for joint, parent, k in zip(self._jaw, self._jaw_parent, self._jaw_frame, strict=True):
             if parent < 0:
                 continue
-            M = frames[parent] @ joint.origin
             lim = self.joints[joint.name]
-            value = np.clip(opening / max(len(self._jaw), 1), lim.lower, lim.upper)
-            M[:3, 3] += M[:3, :3] @ (value * joint.axis)
-            out += [(M[:3, :3] @ c.p0 + M[:3, 3], M[:3, :3] @ c.p1 + M[:3, 3], c.radius)
-                    for c in self._shapes.get(joint.child, [])]
-        return out
+            M = joint.origin.copy()
+            M[:3, 3] += M[:3, :3] @ (np.clip(opening / len(self._jaw), lim.lower, lim.upper)
+                                     * joint.axis)
+            frames[:, k] = frames[:, parent] @ M
+        T = frames[:, self._capsule_frame]
+        p0 = np.einsum("mcij,cj->mci", T[..., :3, :3], self._capsule_p0) + T[..., :3, 3]
+        p1 = np.einsum("mcij,cj->mci", T[..., :3, :3], self._capsule_p1) + T[..., :3, 3]
+        for c, k in self._capsule_to_next:  # links without shapes: origin to the next link's
+            p1[:, c] = frames[:, k + 1, :3, 3]
+        return p0, p1, self._capsule_radius
+
+    def _capsule_layout(self) -> None:
+        """Which frame each capsule hangs on and its ends there, for :meth:`capsules_batch`;
+        the jaw fingers' frames are appended after the chain's."""
+        n_links = len(self.link_names)
+        self._jaw_frame = [n_links + i for i in range(len(self._jaw))]
+        frame, p0, p1, radius, to_next = [], [], [], [], []
+        moved = {j.child for j in self._chain.movable}
+        for k, name in enumerate(self.link_names):
+            shapes = self._shapes.get(name, [])
+            if not shapes and name in moved and k + 1 < n_links:
+                to_next.append((len(frame), k))
+                frame.append(k)
+                p0.append(np.zeros(3))
+                p1.append(np.zeros(3))
+                radius.append(DEFAULT_RADIUS)
+            for c in shapes:
+                frame.append(k)
+                p0.append(c.p0)
+                p1.append(c.p1)
+                radius.append(c.radius)
+        self.jaw_capsule_count = 0
+        for joint, parent, k in zip(self._jaw, self._jaw_parent, self._jaw_frame, strict=True):
+            if parent < 0:
+                continue
+            for c in self._shapes.get(joint.child, []):
+                self.jaw_capsule_count += 1
+                frame.append(k)
+                p0.append(c.p0)
+                p1.append(c.p1)
+                radius.append(c.radius)
+        self._capsule_frame = np.array(frame, dtype=int)
+        self._capsule_p0, self._capsule_p1 = np.array(p0), np.array(p1)
+        self._capsule_radius = np.array(radius)
+        self._capsule_to_next = to_next
+        # The hand: capsules on links after the last arm joint, fixed in the tool frame.
+        last = max(k for k, j in enumerate(self._chain.joints) if j.movable)
+        hand = (self._capsule_frame >= last) & (self._capsule_frame < n_links)
+        p0, p1, r = self.capsules_batch(self.q_home[None])
+        T_tool_base = np.linalg.inv(self.forward(self.q_home))
+        to_tool = lambda p: p[0, hand] @ T_tool_base[:3, :3].T + T_tool_base[:3, 3]  # noqa: E731
+        self.hand_capsules = (to_tool(p0), to_tool(p1), r[hand])
 
     # --- inverse kinematics ---------------------------------------------------------------
 
@@ -161,7 +218,7 @@ class ArmModel:
         return [q_seed, self.q_home, *self._restarts[:restarts]]
 
     def _out_of_reach(self, p: np.ndarray, position_tol: float) -> bool:
-        return float(np.linalg.norm(p - self._shoulder)) > self._reach_bound + position_tol
+        return float(np.linalg.norm(p - self.shoulder)) > self._reach_bound + position_tol
 
     def inverse(self, T_target: np.ndarray, q_seed: np.ndarray, position_tol: float = 1e-3,
                 angle_tol_deg: float = 2.0, max_iter: int = 100,

@@ -81,16 +81,52 @@ def motion_direction(path: PredictedPath, t: float) -> np.ndarray:
     return axis if axis @ before >= 0 else -axis
 
 
-def offset_directions(d: np.ndarray, towards: np.ndarray, count: int = 8) -> list[np.ndarray]:
-    """Unit vectors n ⟂ ``d``, the one closest to ``towards`` first, then around ``d``."""
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def perpendicular(d: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """The unit vector ⟂ to the unit ``d`` closest to ``towards`` (any ⟂ one if parallel)."""
     ref = towards - (towards @ d) * d
     if np.linalg.norm(ref) < 1e-6:
-        ref = np.cross(d, [0.0, 0.0, 1.0])
-    e1 = ref / np.linalg.norm(ref)
-    e2 = np.cross(d, e1)
-    angles = sorted(np.linspace(0, 2 * np.pi, count, endpoint=False),
-                    key=lambda a: min(a, 2 * np.pi - a))
-    return [np.cos(a) * e1 + np.sin(a) * e2 for a in angles]
+        ref = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0, 0])
+    return _unit(ref)
+
+
+def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.ndarray,
+                       count: int = 7) -> list[np.ndarray]:
+    """Tool orientations for a grasp of an object arriving along ``d`` (unit, world), best
+    first: arrays, shape (3, 3), columns x (the jaws close along it), y, z (the tool points
+    along it), world.
+
+    The jaws close across the motion (x ⟂ d), so the final move along −d runs inside the
+    open slot between them; a cylinder's (unit ``axis``) also close across its axis. The tool
+    points anywhere from head-on against the motion (z = −d) to square to it (z ⟂ d, the
+    paper's side approach), never away from the object's arrival, never up from below (where
+    a tethered object's line is). Those nearest the ``preferred`` z (unit, ⟂ d) come first.
+    """
+    if axis is not None and np.linalg.norm(np.cross(axis, d)) > 0.3:
+        closings = [_unit(np.cross(axis, d))]
+    else:  # a sphere, or a cylinder arriving end first: any closing direction across d
+        e1 = np.cross(-preferred, d)
+        e2 = np.cross(d, e1)
+        closings = [np.cos(a) * e1 + np.sin(a) * e2 for a in np.radians([0, 45, 90, 135])]
+    frames = []
+    for x in closings:
+        w = np.cross(x, d)
+        for theta in np.radians(np.linspace(-90.0, 90.0, count)):
+            z = -np.cos(theta) * d + np.sin(theta) * w
+            if z[2] < 0.5:
+                frames.append(np.column_stack([x, np.cross(z, x), z]))
+    return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
+
+
+def offset_direction(d: np.ndarray, z: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """n of equation 8 for a tool pointing along ``z``: ⟂ to the motion ``d``, on the side
+    the tool comes from (−z without its part along d); for a tool pointing head-on at the
+    object, the side nearest ``towards``."""
+    back = -(z - (z @ d) * d)
+    return _unit(back) if np.linalg.norm(back) > 0.5 else perpendicular(d, towards)
 
 
 def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15,

@@ -20,7 +20,8 @@ from wavegrasp.recording_io.ros_msgs import decode_pose
 
 @dataclass
 class PlannerScore:
-    """Per warm prediction: planned or not, planning time (ms), |P_f − truth at t_grasp| (m)."""
+    """Warm predictions and plans made; planning times (ms); |P_f − truth at t_grasp| (m) of
+    the plans whose grasp time the recording still covers."""
 
     attempts: int
     plans: int
@@ -36,7 +37,7 @@ def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.n
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
-    times, errors, attempts = [], [], 0
+    times, errors, attempts, plans = [], [], 0, 0
     for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
         if np.isnan(centre[0]):
             continue
@@ -50,11 +51,12 @@ def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.n
         start = time.perf_counter()
         plan = plan_grasp(path, t, arm, T_world_base, arm.q_home, body, cfg)
         times.append((time.perf_counter() - start) * 1e3)
+        plans += isinstance(plan, Plan)
         if isinstance(plan, Plan) and plan.t_grasp <= t_truth[-1]:
             truth = np.array([np.interp(plan.t_grasp, t_truth, track.truth[:, i])
                               for i in range(3)])
             errors.append(np.linalg.norm(plan.grasp_T_world[:3, 3] - truth))
-    return PlannerScore(attempts, len(errors), np.array(times), np.array(errors))
+    return PlannerScore(attempts, plans, np.array(times), np.array(errors))
 
 
 def approved_grasp_errors(run_mcap: Path) -> np.ndarray:

@@ -1,6 +1,9 @@
 """Plan one grasp: pick the time, generate candidates, reject the unreachable, the colliding
 and the untimeable, and return the first that passes (candidates are ordered best first).
 
+A candidate that cannot be timed tells how long the arm needs; grasp times sooner than the
+quickest such need are then skipped, so a failing time costs one inverse kinematics each.
+
 Times are seconds on the recording clock; positions metres. The arm's joint values are in its
 own model (radians); ``T_world_base`` places its mount ``bravo_base_link`` in ``world``.
 """
@@ -16,19 +19,28 @@ from pydantic import BaseModel, Field
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
     PredictedPath,
+    grasp_orientations,
     grasp_times,
     motion_direction,
-    offset_directions,
+    offset_direction,
+    perpendicular,
     waypoints,
 )
-from wavegrasp.planner.timing import Limits, sample_path, sample_segment, segment, spline_path
+from wavegrasp.planner.collision import Body, collides, extent, hand_hits
+from wavegrasp.planner.timing import (
+    Limits,
+    sample_path,
+    sample_segment,
+    segment,
+    spline_path,
+)
 
 
 class PlannerConfig(BaseModel):
     grasp_time: str = Field("slowest", description="'slowest' or 'period' (the paper's Δt = T)")
     min_lead_s: float = Field(0.6, description="no grasp sooner than this after planning")
     start_delay_s: float = Field(0.25, description="time for the plan to be approved and sent")
-    alpha_m: float = 0.12
+    alpha_m: float = Field(0.08, description="P_init's distance from the object's surface")
     waypoint_count: int = 3
     beta_m: float = 0.02
     final_m: float = 0.05
@@ -36,8 +48,8 @@ class PlannerConfig(BaseModel):
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
-    max_times: int = 3
-    max_offsets: int = 3
+    max_times: int = Field(3, description="grasp times tried, each with every orientation")
+    max_orientations: int = Field(4, description="tool orientations tried per grasp time")
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -60,61 +72,14 @@ class Plan:
     rejected: Counter = field(default_factory=Counter)
 
 
-def grasp_pose(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Tool pose (4, 4) at ``p``: pointing at the object from the offset side (z = −n), the
-    open slot between the jaws (y) along the object's motion ``d``, so the object, arriving
-    along d against the jaws' final move, enters between them; the jaws close along x."""
-    z = -n / np.linalg.norm(n)
-    y = d - (d @ z) * z
-    y /= np.linalg.norm(y)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([np.cross(y, z), y, z])
-    T[:3, 3] = p
-    return T
-
-
-def segment_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> float:
-    """Smallest distance from the segment p0-p1 to the points ``c`` (k, 3)."""
-    d = p1 - p0
-    s = np.clip((c - p0) @ d / max(d @ d, 1e-12), 0.0, 1.0)
-    return float(np.min(np.linalg.norm(p0 + s[:, None] * d - c, axis=1)))
-
-
-def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
-             path: PredictedPath, body: tuple[float, float, np.ndarray | None],
-             clearance: float, final_from: float) -> bool:
-    """Does any link come within ``clearance`` of the object along its predicted path?
-
-    ``body`` = (radius, half length, axis): a sphere, or a capsule along the axis (points on
-    its axis stand for it). Before ``final_from`` every link counts; during the final move
-    the jaws and the wrist (the last three capsules) may close in: that is the grasp.
-    """
-    radius, half, axis = body
-    spine = np.linspace(-1.0, 1.0, 5)[:, None] * max(half - radius, 0.0) * (
-        axis if axis is not None else np.zeros(3))
-    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-    for ti, qi in zip(times[::2], q[::2], strict=True):
-        centre = path.at(min(ti, path.times_s[-1])) + spine
-        capsules = arm.link_capsules(qi)
-        if ti >= final_from:
-            capsules = capsules[:-3]
-        for p0, p1, r in capsules:
-            if segment_points_distance(R @ p0 + t, R @ p1 + t, centre) < radius + r + clearance:
-                return True
-    return False
-
-
 def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.ndarray,
-               q_now: np.ndarray, body: tuple[float, float, np.ndarray | None],
-               cfg: PlannerConfig) -> Plan | Counter:
+               q_now: np.ndarray, body: Body, cfg: PlannerConfig) -> Plan | Counter:
     """The best feasible plan, or a Counter of why every candidate was rejected.
 
     body : (radius, half length, unit axis or None) of the object, metres, world.
     """
-    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
-    T_base_world = np.linalg.inv(T_world_base)
-    base_world = T_world_base[:3, 3]
     rejected: Counter = Counter()
+    base_world = T_world_base[:3, 3]
     if np.linalg.norm(path.positions - base_world, axis=1).min() > arm.reach_m + 0.2:
         rejected["unreachable"] += 1
         return rejected
@@ -122,73 +87,106 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     # Cartesian speed, then the approach itself.
     tool_world = (T_world_base @ arm.forward(q_now))[:3, 3]
     reach_time = np.linalg.norm(path.positions - tool_world, axis=1).min() / cfg.cruise_mps
-    earliest = now + cfg.start_delay_s + max(cfg.min_lead_s, reach_time + cfg.approach_s)
-    for t_g in grasp_times(path, earliest, cfg.grasp_time)[:cfg.max_times]:
-        p_f = path.at(t_g)
-        d = motion_direction(path, t_g)
-        # Offsets towards the arm and from above first: the arm does not reach around the object.
-        towards = 0.5 * (base_world - p_f) / np.linalg.norm(base_world - p_f) + [0.0, 0.0, 1.0]
-        for n in offset_directions(d, towards)[:cfg.max_offsets]:
-            points = waypoints(p_f, n, d, cfg.alpha_m, cfg.waypoint_count, cfg.beta_m,
-                               cfg.final_m)
-            T_grasp = grasp_pose(p_f, n, d)
-            q_f = arm.inverse(T_base_world @ T_grasp, q_now, max_iter=cfg.ik_max_iter,
-                              restarts=cfg.ik_restarts)
-            if q_f is None:
-                rejected["unreachable"] += 1
-                continue
-            roll = q_f[-1] + np.array([0.0, np.pi, -np.pi])  # the same grasp, jaws swapped
-            ok = (roll >= arm.lower[-1]) & (roll <= arm.upper[-1])
-            best = roll[ok][np.argmin(np.abs(roll[ok] - q_now[-1]))]
-            if best != q_f[-1]:
-                T_grasp = T_grasp @ np.diag([-1.0, -1.0, 1.0, 1.0])
-            q_f[-1] = best
-            # Cheap test before the other waypoints: could the arm even be at P_f in time?
-            direct = segment(q_now, np.zeros(6), np.zeros(6), q_f, np.zeros(6), limits)
-            if direct is None or now + cfg.start_delay_s + direct.duration > t_g:
-                rejected["cannot be timed"] += 1
-                continue
-            qs, seed = [], q_f
-            for p in points[::-1]:  # from the grasp back to P_init, each seeding the next
-                T = T_grasp.copy()
-                T[:3, 3] = p
-                q = arm.inverse(T_base_world @ T, seed, max_iter=cfg.ik_max_iter,
-                                restarts=cfg.ik_restarts)
-                if q is None:
-                    break
-                qs.append(q)
-                seed = q
-            if len(qs) < len(points):
-                rejected["unreachable"] += 1
-                continue
-            qs = np.array(qs[::-1])
-            approach = spline_path(qs, limits)
-            pre = segment(q_now, np.zeros(6), np.zeros(6), qs[0], np.zeros(6), limits)
-            if pre is None:
-                rejected["cannot be timed"] += 1
-                continue
-            d_path = approach.duration
-            t_start = now + cfg.start_delay_s
-            hold = t_g - d_path - (t_start + pre.duration)
-            if hold < 0:
-                rejected["cannot be timed"] += 1
-                continue
-            t_pre, q_pre, v_pre = sample_segment(pre, t_start, cfg.sample_dt_s)
-            t_app, q_app, v_app = sample_path(approach, t_g - d_path, cfg.sample_dt_s)
-            t_hold = np.arange(t_pre[-1] + cfg.sample_dt_s, t_app[0], cfg.sample_dt_s)
-            times = np.concatenate([t_pre, t_hold, t_app])
-            q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
-            qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
-            final_from = t_g - d_path * (1 - approach.spline.x[-2])
-            if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
+    start = now + cfg.start_delay_s
+    earliest = start + max(cfg.min_lead_s, reach_time + cfg.approach_s)
+    shoulder = T_world_base[:3, :3] @ arm.shoulder + base_world
+    need, tried = 0.0, 0
+    for t_g in grasp_times(path, earliest, cfg.grasp_time):
+        if t_g < start + need:
+            continue
+        if tried == cfg.max_times:
+            break
+        tried += 1
+        p_f, d = path.at(t_g), motion_direction(path, t_g)
+        # The paper's side approach from above the object and the arm's side of it first.
+        towards = [0.0, 0.0, 1.0] - 0.5 * (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
+        quickest, tried_here = np.inf, 0
+        for R in grasp_orientations(d, body[2], -perpendicular(d, towards)):
+            T_grasp = np.eye(4)
+            T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
+            if hand_hits(arm, T_grasp, body):  # cheap, so it does not count as a try
                 rejected["collision"] += 1
                 continue
-            tool = np.array([(T_world_base @ arm.forward(qi))[:3, 3] for qi in q])
-            sigma = float(np.interp(t_g, path.times_s, path.sigma))
-            speed = float(np.linalg.norm(path.velocity(t_g)))
-            confidence = float(np.exp(-sigma / 0.01) / (1.0 + speed))
-            return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence,
-                        rejected)
+            if tried_here == cfg.max_orientations:
+                break
+            tried_here += 1
+            n = offset_direction(d, R[:, 2], towards)
+            result = _candidate(path, now, t_g, T_grasp, n, d, arm, T_world_base, q_now, body,
+                                cfg)
+            if isinstance(result, Plan):
+                result.rejected = rejected
+                return result
+            reason, needed = result
+            rejected[reason] += 1
+            if reason == "cannot be timed":
+                quickest = min(quickest, needed)
+        if np.isfinite(quickest):
+            need = max(need, quickest)
     if not rejected:
         rejected["no grasp time in the prediction"] += 1
     return rejected
+
+
+def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
+               n: np.ndarray, d: np.ndarray, arm: ArmModel, T_world_base: np.ndarray,
+               q_now: np.ndarray, body: Body, cfg: PlannerConfig
+               ) -> Plan | tuple[str, float]:
+    """One grasp pose at one time: the plan, or why not and (if it cannot be timed) how long
+    the arm needs from ``now + start_delay_s`` to the grasp."""
+    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+    T_base_world = np.linalg.inv(T_world_base)
+    p_f = T_grasp[:3, 3]
+    q_f = arm.inverse(T_base_world @ T_grasp, q_now, max_iter=cfg.ik_max_iter,
+                      restarts=cfg.ik_restarts)
+    if q_f is None:
+        return "unreachable", np.inf
+    roll = q_f[-1] + np.array([0.0, np.pi, -np.pi])  # the same grasp, jaws swapped
+    ok = (roll >= arm.lower[-1]) & (roll <= arm.upper[-1])
+    best = roll[ok][np.argmin(np.abs(roll[ok] - q_now[-1]))]
+    if best != q_f[-1]:
+        T_grasp = T_grasp @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    q_f[-1] = best
+    t_start = now + cfg.start_delay_s
+    # Cheap test before the other waypoints: could the arm even be at P_f in time?
+    direct = segment(q_now, np.zeros(6), np.zeros(6), q_f, np.zeros(6), limits)
+    if direct is None:
+        return "cannot be timed", np.inf
+    if t_start + direct.duration > t_g:
+        return "cannot be timed", direct.duration
+    alpha = cfg.alpha_m + extent(body, n)
+    points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, cfg.final_m)
+    qs, seed = [], q_f
+    for p in points[::-1]:  # from the grasp back to P_init, each seeding the next
+        T = T_grasp.copy()
+        T[:3, 3] = p
+        q = arm.inverse(T_base_world @ T, seed, max_iter=cfg.ik_max_iter,
+                        restarts=cfg.ik_restarts)
+        if q is None:
+            return "unreachable", np.inf
+        qs.append(q)
+        seed = q
+    qs = np.array(qs[::-1])
+    # Stage at P_init (ruckig, time-optimal), wait there, then the paper's cubic spline
+    # through the waypoints, timed to end at P_f exactly at the grasp time.
+    approach = spline_path(qs, limits)
+    pre = segment(q_now, np.zeros(6), np.zeros(6), qs[0], np.zeros(6), limits)
+    if pre is None:
+        return "cannot be timed", np.inf
+    d_path = approach.duration
+    if t_start + pre.duration + d_path > t_g:
+        return "cannot be timed", pre.duration + d_path
+    t_pre, q_pre, v_pre = sample_segment(pre, t_start, cfg.sample_dt_s)
+    t_app, q_app, v_app = sample_path(approach, t_g - d_path, cfg.sample_dt_s)
+    t_app[-1] = t_g
+    t_hold = np.arange(t_pre[-1] + cfg.sample_dt_s, t_app[0], cfg.sample_dt_s)
+    times = np.concatenate([t_pre, t_hold, t_app])
+    q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
+    qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
+    final_from = t_g - d_path * (1 - approach.spline.x[-2])
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
+        return "collision", 0.0
+    tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
+    sigma = float(np.interp(t_g, path.times_s, path.sigma))
+    speed = float(np.linalg.norm(path.velocity(t_g)))
+    confidence = float(np.exp(-sigma / 0.01) / (1.0 + speed))
+    return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence)
