@@ -50,6 +50,9 @@ class PlannerConfig(BaseModel):
     sample_dt_s: float = 0.02
     max_times: int = Field(3, description="grasp times tried, each with every orientation")
     max_orientations: int = Field(4, description="tool orientations tried per grasp time")
+    min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
+                                "to point back at itself: the least cosine between the tool's z "
+                                "and the direction from the shoulder to the object")
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -96,20 +99,25 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             continue
         if tried == cfg.max_times:
             break
-        tried += 1
         p_f, d = path.at(t_g), motion_direction(path, t_g)
+        outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
         # The paper's side approach from above the object and the arm's side of it first.
-        towards = [0.0, 0.0, 1.0] - 0.5 * (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
+        towards = [0.0, 0.0, 1.0] - 0.5 * outwards
         quickest, tried_here = np.inf, 0
         for R in grasp_orientations(d, body[2], -perpendicular(d, towards)):
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
-            if hand_hits(arm, T_grasp, body):  # cheap, so it does not count as a try
+            # Cheap rejections first; they do not count as tries.
+            if R[:, 2] @ outwards < cfg.min_outwards:
+                rejected["unreachable"] += 1
+                continue
+            if hand_hits(arm, T_grasp, body):
                 rejected["collision"] += 1
                 continue
             if tried_here == cfg.max_orientations:
                 break
             tried_here += 1
+            tried += tried_here == 1
             n = offset_direction(d, R[:, 2], towards)
             result = _candidate(path, now, t_g, T_grasp, n, d, arm, T_world_base, q_now, body,
                                 cfg)
