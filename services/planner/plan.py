@@ -44,7 +44,8 @@ class PlannerConfig(BaseModel):
     waypoint_count: int = 3
     beta_m: float = 0.02
     final_m: float = 0.05
-    clearance_m: float = Field(0.015, description="arm to object, before the final move")
+    clearance_m: float = Field(0.01, description="arm to object before the final move (the "
+                               "gate's ε: it approves only while the mean error is below it)")
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
