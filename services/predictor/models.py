@@ -26,7 +26,7 @@ class Predictor:
 
     name = "base"
 
-    def __init__(self, dt: float = 0.1, max_lead_s: float = 3.0, max_gap_s: float = 0.5) -> None:
+    def __init__(self, dt: float = 0.1, max_lead_s: float = 4.0, max_gap_s: float = 0.5) -> None:
         self.dt, self.max_gap_s = dt, max_gap_s
         self.leads = np.arange(int(round(max_lead_s / dt)) + 1) * dt
         self.tracker = ErrorTracker(dt, len(self.leads))
