@@ -49,7 +49,7 @@ class PlannerConfig(BaseModel):
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
-    max_times: int = Field(3, description="grasp times tried, each with every orientation")
+    max_times: int = Field(5, description="grasp times tried, each with every orientation")
     max_orientations: int = Field(4, description="tool orientations tried per grasp time")
     min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
                                 "to point back at itself: the least cosine between the tool's z "
