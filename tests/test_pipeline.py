@@ -25,7 +25,7 @@ def read(out: Path, topic: str) -> list[dict]:
 
 def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
     rec = tmp_path / "can.mcap"
-    generate(RecordConfig(wave=2, object="can_empty", seconds=14.0, seed=2, preroll_s=5.0), rec)
+    generate(RecordConfig(wave=2, object="can_empty", seconds=18.0, seed=2, preroll_s=5.0), rec)
     out = tmp_path / "run"
     # Realtime: the gate judges whether a plan can still start on time by the recording clock.
     result = subprocess.run(wavegrasp_cmd("up", str(rec), "--pace", "realtime", "--out",
@@ -34,9 +34,9 @@ def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
     observations = read(out, "wavegrasp/perception/object")
     meshes = read(out, "wavegrasp/perception/mesh")
     predictions = read(out, "wavegrasp/predictor/prediction")
-    assert len(observations) == 140
+    assert len(observations) == 180
     seen = [o for o in observations if o["centroid"] is not None]
-    assert len(seen) >= 0.95 * 140
+    assert len(seen) >= 0.95 * 180
     assert all(o["header"]["trace"][-1]["service"] == "perception" for o in observations)
     start = observations[0]["header"]["stamp_ns"]
     late = [m for m in meshes if m["header"]["stamp_ns"] - start >= 10 * 10**9]

@@ -46,13 +46,15 @@ class PredictedPath:
         return (self.at(t + h / 2) - self.at(t - h / 2)) / h
 
 
-def grasp_times(path: PredictedPath, earliest_s: float, rule: str) -> list[float]:
+def grasp_times(path: PredictedPath, earliest_s: float, rule: str,
+                timing_s: float = 0.1) -> list[float]:
     """Candidate grasp times, best first.
 
     ``period``: one period ahead, as the paper (Δt = T), or whole periods later when the arm
-    needs longer, each then followed by the samples nearest it. ``slowest``: the
-    samples at or after ``earliest_s`` ordered by the object's predicted speed (a slow object
-    forgives timing errors), ties broken by the smaller sigma.
+    needs longer, each then followed by the samples nearest it. ``slowest``: the samples at or
+    after ``earliest_s`` ordered by the expected miss, the prediction's sigma plus the
+    object's predicted speed times ``timing_s`` (how far off the arm's timing may be): a slow
+    object forgives timing errors, and a nearer time is predicted better.
     """
     t0 = path.times_s[0]
     usable = path.times_s[path.times_s >= earliest_s]
@@ -65,8 +67,8 @@ def grasp_times(path: PredictedPath, earliest_s: float, rule: str) -> list[float
     if rule != "slowest":
         raise ValueError(f"grasp time rule must be 'period' or 'slowest', got {rule!r}")
     speed = np.array([np.linalg.norm(path.velocity(t)) for t in usable])
-    sigma = np.interp(usable, path.times_s, path.sigma)
-    return [float(usable[i]) for i in np.lexsort((sigma, speed))]
+    miss = np.interp(usable, path.times_s, path.sigma) + timing_s * speed
+    return [float(usable[i]) for i in np.argsort(miss, kind="stable")]
 
 
 def motion_direction(path: PredictedPath, t: float) -> np.ndarray:
