@@ -105,3 +105,28 @@ def test_attachment_round_trip_and_plain_rmw_layout() -> None:
     assert CdrAttachment.decode(att.encode()) == att
     plain = att.encode()[:-8]  # rmw_zenoh's layout without our log time
     assert CdrAttachment.decode(plain) == CdrAttachment(7, 10**18, bytes(range(16)), 0)
+
+
+def test_own_keys_arrive_in_the_order_they_were_sent(router: Router) -> None:
+    """A big message on one key then a small one on another (a plan, then the frame's
+    acknowledgement) reach the inbox in that order: zenoh runs different subscribers'
+    callbacks concurrently, so the bus serves all wavegrasp/ keys from one subscriber."""
+    sender, receiver = router.bus(), router.bus()
+    try:
+        receiver.subscribe("wavegrasp/test/plan", lambda d: None)
+        receiver.subscribe("wavegrasp/test/ack", lambda d: None)
+        receiver.subscribe("wavegrasp/*/other", lambda d: None)
+        time.sleep(1.0)
+        big = b"p" * 20_000
+        order = []
+        for _ in range(100):
+            sender.publish_bytes("wavegrasp/test/plan", big)
+            sender.publish_bytes("wavegrasp/test/ack", b"{}")
+            order += [receiver.inbox.get(timeout=5).key, receiver.inbox.get(timeout=5).key]
+        assert order == ["wavegrasp/test/plan", "wavegrasp/test/ack"] * 100
+        sender.publish_bytes("wavegrasp/test/unsubscribed", b"{}")  # dropped, not queued
+        sender.publish_bytes("wavegrasp/x/other", b"{}")
+        assert receiver.inbox.get(timeout=5).key == "wavegrasp/x/other"
+    finally:
+        sender.close()
+        receiver.close()

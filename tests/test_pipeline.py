@@ -71,3 +71,26 @@ def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
     assert [h["service"] for h in decisions[-1]["header"]["trace"]][-2:] == ["planner", "gate"]
     errors = approved_grasp_errors(out / "run.mcap")
     assert len(errors) and np.median(errors) <= 0.015
+
+
+def test_lockstep_runs_repeat_exactly(tmp_path: Path) -> None:
+    """Lockstep waits for the gate's acknowledgement of each frame (the chain perception ->
+    predictor -> planner -> gate), so two runs plan and decide exactly alike."""
+    rec = tmp_path / "can.mcap"
+    generate(RecordConfig(wave=2, object="can_half", seconds=13.0, seed=3, preroll_s=5.0), rec)
+    runs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        result = subprocess.run(wavegrasp_cmd("up", str(rec), "--pace", "lockstep", "--out",
+                                              str(out)), capture_output=True, text=True,
+                                timeout=180)
+        assert result.returncode == 0, result.stdout[-3000:]
+        plans = [(p["plan_id"], p["t_grasp_ns"], p["grasp"], p["joint_trajectory"])
+                 for p in read(out, "wavegrasp/planner/plan")]
+        decisions = [(d["plan_id"], d["go"], d["reason"])
+                     for d in read(out, "wavegrasp/gate/decision")]
+        acked = [a["frame_seq"] for a in read(out, "wavegrasp/gate/ack")]
+        assert len(acked) == 130 and acked == sorted(acked)
+        runs.append((plans, decisions))
+    assert runs[0][0], "no plan in lockstep"
+    assert runs[0] == runs[1]

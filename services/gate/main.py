@@ -50,6 +50,8 @@ def plan_latency_s(plan: GraspPlan, now_wall_ns: int) -> float:
 
 
 class GateService(Service):
+    ack_after = "planner"
+
     def __init__(self, settings: GateSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
         self.gate = Gate(settings.gate_config())

@@ -68,6 +68,20 @@ class PerceptionService(Service):
                       trace=[*hops, Hop(service=self.name, recv_ns=d.recv_ns)])
 
     def on_points(self, d: Delivery) -> None:
+        """Process one camera frame; acknowledge it whatever came of it (the lockstep chain)."""
+        try:
+            self.process_frame(d)
+        finally:
+            try:
+                att = CdrAttachment.decode(d.attachment)
+            except ValueError:
+                att = None  # counted as a bad message already; no frame to acknowledge
+            if att is not None:
+                self.ack_frame(Header(seq=att.seq, stamp_ns=att.log_time_ns, frame_id="world",
+                                      trace=[Hop(service="source", recv_ns=att.source_ns,
+                                                 sent_ns=att.source_ns)]), d.recv_ns, att.seq)
+
+    def process_frame(self, d: Delivery) -> None:
         try:
             cloud = decode_points(d.payload)
         except ValueError as exc:

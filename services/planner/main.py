@@ -68,6 +68,8 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
 
 
 class PlannerService(Service):
+    ack_after = "predictor"
+
     def __init__(self, settings: PlannerSettings, bus: Bus | None = None) -> None:
         self.arm = ArmModel.load(settings.arm_urdf or None)  # before the bus: fail cleanly
         super().__init__(settings, bus)
@@ -113,6 +115,9 @@ class PlannerService(Service):
         if self._pending is not None:
             self.counters["skipped: superseded"] += 1
         self._pending = (msg, d)
+
+    def finish_frame(self, frame_seq: int) -> None:
+        self.on_tick()  # plan on the frame's prediction before acknowledging the frame
 
     def on_tick(self) -> None:
         if self._pending is not None:

@@ -6,9 +6,10 @@ Reads MCAP (ROS 2 profile), ROS 1 ``.bag`` files and ROS 2 bag folders and publi
 (sequence, source timestamp, log time), and the recording's time on ``wavegrasp/clock``.
 
 Pacing: ``realtime`` keeps the recording's rate; ``fast`` goes as fast as the bus takes it;
-``lockstep`` waits after each camera frame until ``wavegrasp/<ack_service>/ack`` acknowledges it,
-so a run is deterministic. In every pacing the player waits at the end for the last frame's
-acknowledgement (bounded by ``ack_timeout_s``) so nothing is cut off when the run stops.
+``lockstep`` waits after each camera frame until every service in ``ack_services`` has
+acknowledged it on ``wavegrasp/<service>/ack``, so a run is deterministic. In every pacing the
+player waits at the end for the last frame's acknowledgement (bounded by ``ack_timeout_s``)
+so nothing is cut off when the run stops.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ Pace = Literal["realtime", "fast", "lockstep"]
 
 class PlayerSettings(Settings):
     pace: Pace = "realtime"
-    ack_service: str = Field("recorder", description="whose FrameAck ends a frame in lockstep")
+    ack_services: list[str] = Field(default_factory=lambda: ["recorder"],
+                                    description="whose FrameAcks end a frame in lockstep")
     ack_timeout_s: float = Field(30.0, gt=0)
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
@@ -51,13 +53,20 @@ class Player(Service):
         self.recording = recording
         self.frames = 0
         self.messages = 0
-        self.acked_seq = -1
+        self.acked = {name: -1 for name in settings.ack_services}
         self._clock_seq = 0
         self._last_clock_ns: int | None = None
-        self.bus.subscribe(ack_key(settings.ack_service), self.on_ack, FrameAck)
+        for name in settings.ack_services:
+            self.bus.subscribe(ack_key(name), self.on_ack, FrameAck)
 
     def on_ack(self, msg: FrameAck, _d: Delivery) -> None:
-        self.acked_seq = max(self.acked_seq, msg.frame_seq)
+        if msg.service in self.acked:
+            self.acked[msg.service] = max(self.acked[msg.service], msg.frame_seq)
+
+    @property
+    def acked_seq(self) -> int:
+        """The newest frame every service in ``ack_services`` has acknowledged."""
+        return min(self.acked.values(), default=-1)
 
     def status(self, state: str, error: str | None = None) -> None:
         self.bus.publish("wavegrasp/player/status", PlayerStatus(
@@ -74,6 +83,9 @@ class Player(Service):
         rate = {"realtime": 1.0, "fast": 0.0, "lockstep": 0.0}[self.cfg.pace]
         self.bus.publish("wavegrasp/clock", Clock(
             header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate))
+
+    def laggards(self, seq: int) -> str:
+        return ", ".join(name for name, acked in self.acked.items() if acked < seq)
 
     def wait_for_ack(self, seq: int, timeout_s: float) -> bool:
         """Serve the loop until frame ``seq`` is acknowledged; False on timeout or stop."""
@@ -119,12 +131,13 @@ class Player(Service):
                     if self.stopping.is_set():
                         break
                     log.error("frame %d not acknowledged by %s within %.0f s", seq,
-                              cfg.ack_service, cfg.ack_timeout_s)
+                              self.laggards(seq), cfg.ack_timeout_s)
                     self.status("failed", f"frame {seq} not acknowledged")
                     return 4
         if last_seq >= 0 and not self.stopping.is_set() and not self.wait_for_ack(
                 last_seq, cfg.ack_timeout_s):
-            log.warning("last frame %d not acknowledged by %s", last_seq, cfg.ack_service)
+            log.warning("last frame %d not acknowledged by %s", last_seq,
+                        self.laggards(last_seq))
         self.status("finished")
         log.info("played %d messages, %d camera frames from %s in %.1f s", self.messages,
                  self.frames, self.recording.path, time.monotonic() - start)

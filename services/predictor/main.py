@@ -34,6 +34,8 @@ class PredictorSettings(Settings):
 
 
 class PredictorService(Service):
+    ack_after = "perception"
+
     def __init__(self, settings: PredictorSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
         self.cfg = settings

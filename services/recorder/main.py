@@ -24,15 +24,13 @@ from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import CdrAttachment, derived_header
+from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import (
     MESSAGE_TYPES,
     ROS_KEYS,
     Clock,
-    FrameAck,
     Header,
     PlayerStatus,
-    ack_key,
     model_for_key,
 )
 from wavegrasp.schemas.export import schema_text
@@ -112,9 +110,7 @@ class Recorder(Service):
         if d.key == POINTS_KEY and att is not None:
             self.frames += 1
             self._flush_if_due()
-            self.bus.publish(ack_key(self.name), FrameAck(
-                header=derived_header(Header(seq=att.seq, stamp_ns=log_time), self.name,
-                                      d.recv_ns), service=self.name, frame_seq=att.seq))
+            self.ack_frame(Header(seq=att.seq, stamp_ns=log_time), d.recv_ns, att.seq)
 
     def _record_json(self, d: Delivery) -> None:
         model = MESSAGE_TYPES.get(d.schema or "") or model_for_key(d.key)

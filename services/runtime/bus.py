@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 JSON = "application/json"
 CDR = "application/cdr"
+#: The namespace of the project's own messages (one ordered subscriber serves them all).
+OWN_PREFIX = "wavegrasp/"
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,8 @@ class Bus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._seq: Counter[str] = Counter()
         self._keep: list[Any] = []  # subscribers and tokens live as long as the bus
+        self._own: list[tuple[zenoh.KeyExpr, int]] = []  # wavegrasp/ key expressions, routes
+        self._own_subscriber: zenoh.Subscriber | None = None
         self._lock = threading.Lock()
 
     # -- publishing ---------------------------------------------------------------------------
@@ -138,6 +142,11 @@ class Bus:
 
         With ``model``, the handler gets ``(msg, delivery)`` with the decoded model; without,
         it gets ``(delivery)`` and raises :class:`BadMessage` (or ValueError) on bad input.
+
+        Keys under ``wavegrasp/`` share one zenoh subscriber, so their samples reach the
+        inbox in the order they were sent: zenoh calls different subscribers' callbacks
+        concurrently, which would let a service's frame acknowledgement overtake the data it
+        acknowledges.
         """
         if model is None:
             route = handler
@@ -148,15 +157,29 @@ class Bus:
             index = len(self._routes)
             self._routes.append(route)
         self.subscriptions.append(key)
+        if key.startswith(OWN_PREFIX):
+            with self._lock:
+                self._own.append((zenoh.KeyExpr(key), index))
+            if self._own_subscriber is None:
+                self._own_subscriber = self.session.declare_subscriber(
+                    OWN_PREFIX + "**", self._on_own_sample)
+                self._keep.append(self._own_subscriber)
+            return
+        self._keep.append(self.session.declare_subscriber(
+            key, lambda sample: self._deliver(sample, index)))
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            att = sample.attachment
-            self.inbox.put(Delivery(
-                key=str(sample.key_expr), payload=sample.payload.to_bytes(),
-                encoding=str(sample.encoding), attachment=None if att is None else att.to_bytes(),
-                recv_ns=time.time_ns(), route=index))
+    def _deliver(self, sample: zenoh.Sample, route: int) -> None:
+        att = sample.attachment
+        self.inbox.put(Delivery(
+            key=str(sample.key_expr), payload=sample.payload.to_bytes(),
+            encoding=str(sample.encoding), attachment=None if att is None else att.to_bytes(),
+            recv_ns=time.time_ns(), route=route))
 
-        self._keep.append(self.session.declare_subscriber(key, on_sample))
+    def _on_own_sample(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            routes = [index for expr, index in self._own if expr.includes(sample.key_expr)]
+        for index in routes:  # keys nobody here subscribed are dropped, not counted
+            self._deliver(sample, index)
 
     def dispatch(self, delivery: Delivery) -> bool:
         """Decode and handle one delivery; count it; False if it was bad."""

@@ -15,11 +15,11 @@ import threading
 import time
 from collections import Counter
 
-from wavegrasp.runtime.bus import Bus
+from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import new_header
-from wavegrasp.schemas import Clock, ServiceStats, stats_key
+from wavegrasp.runtime.trace import derived_header, new_header
+from wavegrasp.schemas import Clock, FrameAck, Header, ServiceStats, ack_key, stats_key
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +31,18 @@ def setup_logging(level: str = "INFO") -> None:
 
 
 class Service:
-    """Base of all services. ``run()`` blocks until SIGINT/SIGTERM or :meth:`stop`."""
+    """Base of all services. ``run()`` blocks until SIGINT/SIGTERM or :meth:`stop`.
+
+    Frame acknowledgements chain along the pipeline: a service with ``ack_after`` set, once
+    that upstream service has acknowledged camera frame N (so everything it sent for N has
+    arrived: one session's messages arrive in order), finishes its own work for N
+    (:meth:`finish_frame`) and acknowledges N on ``wavegrasp/<name>/ack``. The player's
+    lockstep waits for the last service's acknowledgement.
+    """
 
     tick_period_s = 0.05
+    #: The upstream service whose frame acknowledgements this one follows (None: none).
+    ack_after: str | None = None
 
     def __init__(self, settings: Settings, bus: Bus | None = None) -> None:
         self.settings = settings
@@ -47,6 +56,21 @@ class Service:
         self._next_stats = 0.0
         self._stats_seq = 0
         self.bus.subscribe("wavegrasp/clock", self.on_clock, Clock)
+        if self.ack_after is not None:
+            self.bus.subscribe(ack_key(self.ack_after), self.on_upstream_ack, FrameAck)
+
+    def on_upstream_ack(self, msg: FrameAck, d: Delivery) -> None:
+        self.finish_frame(msg.frame_seq)
+        self.ack_frame(msg.header, d.recv_ns, msg.frame_seq)
+
+    def finish_frame(self, frame_seq: int) -> None:
+        """Called before acknowledging a frame: finish work deferred to ``on_tick``."""
+
+    def ack_frame(self, source: Header, recv_ns: int, frame_seq: int) -> None:
+        """Acknowledge camera frame ``frame_seq`` (everything for it has been published)."""
+        self.bus.publish(ack_key(self.name), FrameAck(
+            header=derived_header(source, self.name, recv_ns), service=self.name,
+            frame_seq=frame_seq))
 
     def on_clock(self, msg: Clock, _delivery: object) -> None:
         self.clock.on_clock(msg)
