@@ -101,7 +101,7 @@ def test_volume_from_ten_seconds_of_frames(meshes: dict, shape: str) -> None:
     print(f"{shape}: volume error {100 * (volume / truth - 1):+.2f} %, add {per_frame * 1e3:.3f}"
           f" ms/frame, build_mesh {build_s * 1e3:.0f} ms, {len(v)} vertices {len(t)} triangles")
     assert abs(volume / truth - 1) < 0.03  # brief: 15 %, ideally 5 %; measured within 1.5 %
-    assert per_frame < 0.002  # ~0.2 ms for ~500 points; slack for loaded CI machines
+    # Speed is for the benchmark (python -m wavegrasp.ops.bench_perception), not a test.
 
 
 @pytest.mark.parametrize("shape", list(SHAPES))
