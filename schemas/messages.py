@@ -137,6 +137,11 @@ class GraspPlan(Message):
     confidence: float = 0.0
     waypoints: list[Vec3] = Field(default_factory=list,
                                   description="P_init, the P_i, the pre-grasp point, P_f; world")
+    t_final_ns: int | None = Field(None, description="when the final move into P_f begins")
+    jaw_preshape_m: float | None = Field(
+        None, description="the jaw's opening for the final move, a little wider than the object")
+    t_close_ns: int | None = Field(
+        None, description="when the jaw starts closing, so it meets the object at t_grasp_ns")
 
 
 class GateDecision(Message):

@@ -38,6 +38,7 @@ class ArmModel:
 
     def __init__(self, robot: UrdfRobot, tool_link: str, base_link: str | None,
                  overrides: dict[str, dict[str, float]] | None) -> None:
+        self.urdf_path: Path | None = None  # the file it was read from (the sim loads it)
         self.base_link = base_link or robot.root()
         self.tool_link = tool_link
         self._chain = Chain(robot.chain(self.base_link, tool_link))
@@ -55,6 +56,8 @@ class ArmModel:
         self.joints = apply_overrides(joints, overrides)
         self.jaw_max_opening_m = robot.jaw_max_opening if robot.jaw_max_opening is not None \
             else sum(self.joints[n].upper - self.joints[n].lower for n in self.jaw_joints)
+        #: How fast the jaw's gap closes, m/s: every finger at its speed limit.
+        self.jaw_closing_mps = sum(self.joints[n].max_velocity for n in self.jaw_joints) or 0.1
         arm = [self.joints[n] for n in self.joint_names]
         self.lower = np.array([j.lower for j in arm])
         self.upper = np.array([j.upper for j in arm])
@@ -91,10 +94,14 @@ class ArmModel:
         if path is None:
             with importlib.resources.as_file(
                     importlib.resources.files("wavegrasp.arm") / DEFAULT_URDF) as p:
-                return cls(parse_urdf(p), tool_link, base_link, overrides)
+                arm = cls(parse_urdf(p), tool_link, base_link, overrides)
+                arm.urdf_path = Path(p)
+                return arm
         if not Path(path).is_file():
             raise ValueError(f"arm URDF {str(path)!r} does not exist")
-        return cls(parse_urdf(path), tool_link, base_link, overrides)
+        arm = cls(parse_urdf(path), tool_link, base_link, overrides)
+        arm.urdf_path = Path(path)
+        return arm
 
     # --- limits ---------------------------------------------------------------------------
 

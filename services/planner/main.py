@@ -64,7 +64,9 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                           for t, qi, vi in zip(plan.times, plan.q, plan.qd, strict=True)],
         cartesian_path=[CartesianSample(t_ns=ns(t), x=p[0], y=p[1], z=p[2])
                         for t, p in zip(plan.times, plan.tool, strict=True)],
-        confidence=plan.confidence, waypoints=[vec(p) for p in plan.points])
+        confidence=plan.confidence, waypoints=[vec(p) for p in plan.points],
+        t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
+        t_close_ns=ns(plan.t_close))
 
 
 class PlannerService(Service):

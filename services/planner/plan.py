@@ -44,6 +44,8 @@ class PlannerConfig(BaseModel):
     waypoint_count: int = 3
     beta_m: float = 0.02
     final_m: float = 0.05
+    jaw_margin_m: float = Field(0.01, description="the jaw's preshape: this wider than the "
+                                "object on each side")
     clearance_m: float = Field(0.01, description="arm to object before the final move (the "
                                "gate's ε: it approves only while the mean error is below it)")
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
@@ -73,6 +75,9 @@ class Plan:
     grasp_T_world: np.ndarray
     approach: np.ndarray
     confidence: float
+    t_final: float = 0.0
+    jaw_preshape_m: float = 0.0
+    t_close: float = 0.0
     rejected: Counter = field(default_factory=Counter)
 
 
@@ -198,4 +203,10 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     sigma = float(np.interp(t_g, path.times_s, path.sigma))
     speed = float(np.linalg.norm(path.velocity(t_g)))
     confidence = float(np.exp(-sigma / 0.01) / (1.0 + speed))
-    return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence)
+    # Narrow the jaw for the final move and start closing just in time: a jaw opened wide
+    # closes too slowly for an object that turns back right after the grasp time.
+    width = 2.0 * body[0]
+    preshape = min(arm.jaw_max_opening_m, width + 2.0 * cfg.jaw_margin_m)
+    t_close = t_g - (preshape - width) / arm.jaw_closing_mps
+    return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence, final_from,
+                preshape, t_close)

@@ -1,0 +1,1 @@
+"""The PyBullet simulator that executes approved plans and judges each grasp."""

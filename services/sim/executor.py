@@ -1,0 +1,202 @@
+"""Execute an approved plan in the simulated scene and judge the grasp physically.
+
+Rules (the README lists them too):
+
+- **success**: after the jaw closes at the grasp time and settles, both fingers touch the object
+  and it stays between them for ``hold_s`` while its drive keeps pulling it along its path.
+- Otherwise the first rule that holds names the failure:
+  1. **collision**: before the jaw closed, an arm link other than the fingers touched the
+     object, or a finger did before the final move began;
+  2. **unreachable**: at the grasp time the tool was more than ``reach_tol_m`` from the
+     planned grasp point (the arm could not follow its trajectory);
+  3. **timing**: the object was not at the grasp point at the grasp time, but it passed
+     within ``pass_tol_m`` of it within ``timing_window_s`` before or after (the arm arrived
+     early or late);
+  4. **prediction**: the object came nowhere near the grasp point (the prediction was wrong);
+  5. **other**: the object was there on time and still not held (it slipped).
+
+Times are seconds on the recording clock; positions metres, ``world``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from wavegrasp.planner.timing import Limits, sample_segment, segment
+from wavegrasp.schemas import GraspPlan
+from wavegrasp.sim.world import SimWorld
+
+
+class JudgeConfig(BaseModel):
+    settle_s: float = Field(0.6, description="after the grasp time, for the jaw to close")
+    hold_s: float = Field(1.0, description="the object must stay held this long")
+    reach_tol_m: float = 0.02
+    pass_tol_m: float = 0.015
+    timing_window_s: float = 0.5
+    closed_m: float = Field(0.0, description="the jaw's commanded opening when closing")
+
+
+@dataclass
+class Attempt:
+    """An approved plan: times (k,) s; q, qd (k, n) rad, rad/s; grasp point p_f (3,);
+    final_from: when the final move, into P_f, begins; the jaw narrows to ``jaw_preshape_m``
+    for the final move and starts closing at ``t_close`` (so it meets the object at the
+    grasp time rather than a third of a second later)."""
+
+    plan_id: str
+    times: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    t_grasp: float
+    p_f: np.ndarray
+    final_from: float
+    jaw_preshape_m: float
+    t_close: float
+
+    @classmethod
+    def from_message(cls, plan: GraspPlan, joint_names: list[str]) -> Attempt:
+        """From ``wavegrasp/planner/plan``; raises ValueError naming what is missing."""
+        if not plan.joint_trajectory:
+            raise ValueError(f"plan {plan.plan_id}: no joint_trajectory")
+        if plan.joint_names != joint_names:
+            raise ValueError(f"plan {plan.plan_id}: joint_names {plan.joint_names} are not "
+                             f"the arm's {joint_names}")
+        s = plan.joint_trajectory
+        t_grasp = plan.t_grasp_ns * 1e-9
+        p = plan.grasp.position
+        return cls(plan.plan_id, np.array([x.t_ns for x in s]) * 1e-9,
+                   np.array([x.positions for x in s]),
+                   np.array([x.velocities or [0.0] * len(joint_names) for x in s]), t_grasp,
+                   np.array([p.x, p.y, p.z]),
+                   (plan.t_final_ns or plan.t_grasp_ns) * 1e-9,
+                   plan.jaw_preshape_m or 0.0,
+                   (plan.t_close_ns or plan.t_grasp_ns) * 1e-9)
+
+
+@dataclass
+class Result:
+    plan_id: str
+    success: bool
+    failure: str | None
+    evidence: dict[str, float | str | bool] = field(default_factory=dict)
+
+
+class Executor:
+    """Runs one attempt at a time in ``world``; :meth:`advance` moves everything to a time."""
+
+    def __init__(self, world: SimWorld, cfg: JudgeConfig | None = None) -> None:
+        self.world, self.cfg = world, cfg or JudgeConfig()
+        self.attempt: Attempt | None = None
+        self._truth: list[tuple[float, np.ndarray]] = []
+        self._touched: dict[str, float] = {}
+        self._tool_at_grasp: np.ndarray | None = None
+        self._closing = self._preshaped = False
+        self._return: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        names = world.link_names
+        self._finger_names = {names[i] for i in world.finger_links}
+        self._names = names
+
+    @property
+    def busy(self) -> bool:
+        """Executing an attempt or returning to standby."""
+        return self.attempt is not None or self._return is not None
+
+    def start(self, attempt: Attempt) -> None:
+        if self.busy:
+            raise ValueError(f"plan {attempt.plan_id}: another is executing")
+        self.attempt = attempt
+        self._truth, self._touched = [], {}
+        self._tool_at_grasp, self._closing, self._preshaped = None, False, False
+        self.world.set_jaw(self.world.arm.jaw_max_opening_m)
+
+    def advance(self, t_s: float, position: np.ndarray, quat_xyzw: np.ndarray) -> Result | None:
+        """Drive the object to its pose at ``t_s``, the arm along its plan, step the world to
+        ``t_s``; returns the attempt's result once it is judged."""
+        w = self.world
+        w.drive_object(position, quat_xyzw)
+        a = self.attempt
+        if a is None:
+            self._follow_return(t_s)
+            w.step_to(t_s)
+            return None
+        self._truth.append((t_s, position.copy()))
+        if t_s <= a.times[-1]:
+            k = min(max(np.searchsorted(a.times, t_s), 0), len(a.times) - 1)
+            q = np.array([np.interp(t_s, a.times, a.q[:, j]) for j in range(a.q.shape[1])])
+            w.command_arm(q, a.qd[k] if a.times[0] <= t_s < a.times[-1] else np.zeros(len(q)))
+        w.step_to(t_s)
+        if w.time_s < a.t_grasp:
+            for link in w.contacts():
+                name = self._names[link]
+                if name in self._finger_names and w.time_s >= a.final_from:
+                    continue  # the object entering the jaw in the final move
+                self._touched.setdefault(name, a.t_grasp - w.time_s)
+        if not self._preshaped and a.jaw_preshape_m > 0 and w.time_s >= a.final_from:
+            w.set_jaw(a.jaw_preshape_m)
+            self._preshaped = True
+        if not self._closing and w.time_s >= a.t_close:
+            w.set_jaw(self.cfg.closed_m)
+            self._closing = True
+        if self._tool_at_grasp is None and w.time_s >= a.t_grasp:
+            self._tool_at_grasp = w.tool_position()
+        if w.time_s >= a.t_grasp + self.cfg.settle_s + self.cfg.hold_s:
+            return self._finish(self._judge())
+        return None
+
+    def _judge(self) -> Result:
+        a, w, cfg = self.attempt, self.world, self.cfg
+        assert a is not None and self._tool_at_grasp is not None
+        touching = {self._names[i] for i in w.contacts()}
+        gap = float(np.linalg.norm(w.object_position() - w.tool_position()))
+        evidence: dict[str, float | str | bool] = {
+            "fingers_touching": len(touching & self._finger_names),
+            "object_from_tool_m": gap, "jaw_opening_m": w.jaw_opening()}
+        if touching >= self._finger_names and gap < 0.05:
+            return Result(a.plan_id, True, None, evidence)
+        if self._touched:
+            link, before = max(self._touched.items(), key=lambda kv: kv[1])
+            return Result(a.plan_id, False, "collision",
+                          {**evidence, "link": link, "before_grasp_s": before})
+        reach = float(np.linalg.norm(self._tool_at_grasp - a.p_f))
+        if reach > cfg.reach_tol_m:
+            return Result(a.plan_id, False, "unreachable", {**evidence, "tool_from_p_f_m": reach})
+        times = np.array([t for t, _ in self._truth])
+        dist = np.linalg.norm(np.array([p for _, p in self._truth]) - a.p_f, axis=1)
+        near = np.abs(times - a.t_grasp) <= cfg.timing_window_s
+        at_grasp = float(np.interp(a.t_grasp, times, dist))
+        evidence["object_from_p_f_at_grasp_m"] = at_grasp
+        if at_grasp <= cfg.pass_tol_m:
+            return Result(a.plan_id, False, "other", evidence)
+        if np.any(near & (dist <= cfg.pass_tol_m)):
+            t_pass = float(times[near][np.argmin(dist[near])])
+            return Result(a.plan_id, False, "timing", {
+                **evidence, "object_passed_s": t_pass - a.t_grasp,
+                "arm": "early" if t_pass > a.t_grasp else "late"})
+        return Result(a.plan_id, False, "prediction", evidence)
+
+    def _finish(self, result: Result) -> Result:
+        """Open the jaw and head back to standby (one ruckig move)."""
+        w, arm = self.world, self.world.arm
+        self.attempt = None
+        w.set_jaw(arm.jaw_max_opening_m)
+        q, _ = w.arm_q()
+        move = segment(q, np.zeros(len(q)), np.zeros(len(q)), arm.q_home, np.zeros(len(q)),
+                       Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
+        if move is not None:
+            self._return = sample_segment(move, w.time_s, 0.02)
+        return result
+
+    def _follow_return(self, t_s: float) -> None:
+        if self._return is None:
+            return
+        times, q, qd = self._return
+        if t_s >= times[-1]:
+            self.world.command_arm(q[-1], np.zeros(q.shape[1]))
+            self._return = None
+            return
+        k = int(np.searchsorted(times, t_s))
+        self.world.command_arm(np.array([np.interp(t_s, times, q[:, j])
+                                         for j in range(q.shape[1])]), qd[k])

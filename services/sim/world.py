@@ -1,0 +1,151 @@
+"""The simulated scene: the arm on its mount, the seabed and the object, in PyBullet.
+
+No bus here: :class:`SimWorld` is driven by method calls (the service, the experiment and the
+tests drive it alike). Frame ``world`` (the tank, z up), metres, seconds on the recording clock.
+
+Gravity is off: underwater, the arm's buoyancy and its controllers hold it, and the object is
+carried along its recorded path by a constraint whose force is bounded (``drive_force_n``), so
+a gripper that hits it pushes it aside as the water would let it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.arm import ArmModel
+
+STEP_S = 1.0 / 240.0
+
+
+@dataclass(frozen=True)
+class ObjectShape:
+    """``shape`` 'sphere' or 'cylinder' (along the object's z); radius and length, metres."""
+
+    shape: str
+    radius_m: float
+    length_m: float
+    mass_kg: float = 0.15
+
+
+class SimWorld:
+    """PyBullet in DIRECT mode (``gui=True`` opens a window for people with a screen).
+
+    arm : the model the planner uses (its URDF is loaded here); T_world_base : array, shape
+    (4, 4), where its base link is mounted.
+    """
+
+    def __init__(self, arm: ArmModel, T_world_base: np.ndarray, obj: ObjectShape,
+                 drive_force_n: float = 5.0, gui: bool = False) -> None:
+        self.arm, self.drive_force_n = arm, drive_force_n
+        self.client = pb.connect(pb.GUI if gui else pb.DIRECT)
+        c = self.client
+        pb.setGravity(0.0, 0.0, 0.0, physicsClientId=c)
+        pb.setTimeStep(STEP_S, physicsClientId=c)
+        self.time_s = 0.0
+        quat = Rotation.from_matrix(T_world_base[:3, :3]).as_quat().tolist()
+        self.robot = pb.loadURDF(str(arm.urdf_path), T_world_base[:3, 3].tolist(), quat,
+                                 useFixedBase=True, physicsClientId=c)
+        info = [pb.getJointInfo(self.robot, i, physicsClientId=c)
+                for i in range(pb.getNumJoints(self.robot, physicsClientId=c))]
+        names = {i[1].decode(): i[0] for i in info}
+        #: PyBullet link index -> link name (-1 is the base link).
+        self.link_names = {i[0]: i[12].decode() for i in info} | {-1: arm.base_link}
+        self.tool_link = {name: i for i, name in self.link_names.items()}[arm.tool_link]
+        self.joints = [names[n] for n in arm.joint_names]
+        self.fingers = [names[n] for n in arm.jaw_joints]
+        self.finger_links = set(self.fingers)  # a joint's index is its child link's
+        self._effort = [pb.getJointInfo(self.robot, i, physicsClientId=c)[10]
+                        for i in self.joints + self.fingers]
+        floor = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        self.seabed = pb.createMultiBody(0.0, floor, physicsClientId=c)
+        if obj.shape == "sphere":
+            shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=obj.radius_m,
+                                            physicsClientId=c)
+        else:
+            shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=obj.radius_m,
+                                            height=obj.length_m, physicsClientId=c)
+        self.object = pb.createMultiBody(obj.mass_kg, shape, basePosition=[0.0, 0.0, 0.5],
+                                         physicsClientId=c)
+        pb.changeDynamics(self.object, -1, lateralFriction=0.8, linearDamping=0.0,
+                          angularDamping=0.0, physicsClientId=c)
+        for link in self.finger_links:
+            pb.changeDynamics(self.robot, link, lateralFriction=0.9, physicsClientId=c)
+        self._drive = pb.createConstraint(self.object, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0],
+                                          [0, 0, 0], [0.0, 0.0, 0.5], physicsClientId=c)
+        self.set_arm(arm.q_home)
+        self.set_jaw(arm.jaw_max_opening_m)
+
+    # --- commands -----------------------------------------------------------------------
+
+    def place_object(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        """Put the object at a pose at once (at the start, or when the drive jumps)."""
+        pb.resetBasePositionAndOrientation(self.object, position.tolist(), quat_xyzw.tolist(),
+                                           physicsClientId=self.client)
+        self.drive_object(position, quat_xyzw)
+
+    def drive_object(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        """Where the water carries the object now (its recorded pose), with bounded force."""
+        pb.changeConstraint(self._drive, position.tolist(), jointChildFrameOrientation=(
+            quat_xyzw.tolist()), maxForce=self.drive_force_n, physicsClientId=self.client)
+
+    def set_arm(self, q: np.ndarray) -> None:
+        """Put the arm at ``q`` (radians) at once and hold it there."""
+        for index, value in zip(self.joints, q, strict=True):
+            pb.resetJointState(self.robot, index, float(value), physicsClientId=self.client)
+        self.command_arm(q, np.zeros(len(q)))
+
+    def command_arm(self, q: np.ndarray, qd: np.ndarray) -> None:
+        """Position control towards ``q`` with feed-forward velocity ``qd`` (rad/s)."""
+        for k, index in enumerate(self.joints):
+            pb.setJointMotorControl2(self.robot, index, pb.POSITION_CONTROL, float(q[k]),
+                                     float(qd[k]), force=self._effort[k], positionGain=0.3,
+                                     velocityGain=1.0, physicsClientId=self.client)
+
+    def set_jaw(self, opening_m: float) -> None:
+        """Drive the fingers towards a gap of ``opening_m`` at their speed and force limits."""
+        for k, index in enumerate(self.fingers):
+            lim = self.arm.joints[self.arm.jaw_joints[k]]
+            target = float(np.clip(opening_m / len(self.fingers), lim.lower, lim.upper))
+            pb.setJointMotorControl2(self.robot, index, pb.POSITION_CONTROL, target,
+                                     force=self._effort[len(self.joints) + k],
+                                     maxVelocity=lim.max_velocity, physicsClientId=self.client)
+
+    def step_to(self, t_s: float) -> None:
+        """Advance the simulation to ``t_s`` (recording seconds) in fixed steps."""
+        while self.time_s + STEP_S <= t_s + 1e-12:
+            pb.stepSimulation(physicsClientId=self.client)
+            self.time_s += STEP_S
+
+    # --- state --------------------------------------------------------------------------
+
+    def arm_q(self) -> tuple[np.ndarray, np.ndarray]:
+        states = pb.getJointStates(self.robot, self.joints, physicsClientId=self.client)
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
+    def jaw_opening(self) -> float:
+        states = pb.getJointStates(self.robot, self.fingers, physicsClientId=self.client)
+        return float(sum(s[0] for s in states))
+
+    def object_position(self) -> np.ndarray:
+        return np.array(pb.getBasePositionAndOrientation(self.object,
+                                                          physicsClientId=self.client)[0])
+
+    def tool_position(self) -> np.ndarray:
+        """The grasp point between the jaws, metres, world."""
+        state = pb.getLinkState(self.robot, self.tool_link, computeForwardKinematics=True,
+                                physicsClientId=self.client)
+        return np.array(state[4])
+
+    def contacts(self) -> set[int]:
+        """The arm's links (PyBullet indices) touching the object now."""
+        return {c[3] for c in pb.getContactPoints(self.robot, self.object,
+                                                  physicsClientId=self.client)}
+
+    def close(self) -> None:
+        if pb.isConnected(physicsClientId=self.client):
+            pb.disconnect(physicsClientId=self.client)
+
