@@ -21,6 +21,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
@@ -28,7 +29,7 @@ from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.schemas import PlayerStatus, ServiceStats
+from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
 
 STOP_TIMEOUT_S = 10.0
 
@@ -55,6 +56,7 @@ class Launcher:
         self.started: list[str] = []
         self.bus: Bus | None = None
         self.stats: dict[str, dict] = {}
+        self.outcomes: list[dict] = []
         self.player_status: dict = {}
         self.interrupted = threading.Event()
         self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
@@ -84,6 +86,12 @@ class Launcher:
         self.bus = Bus(settings)
         self.bus.subscribe("wavegrasp/*/stats", self.on_stats, ServiceStats)
         self.bus.subscribe("wavegrasp/player/status", self.on_status, PlayerStatus)
+        self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
+
+    def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
+        self.outcomes.append(msg.model_dump(exclude={"header"}))
+        self.log(f"grasp attempt {msg.attempt} ({msg.plan_id}): "
+                 + ("success" if msg.success else f"failed, {msg.failure}"))
 
     def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
         self.stats[msg.service] = msg.model_dump(exclude={"header"})
@@ -238,11 +246,14 @@ def main(argv: list[str] | None = None) -> int:
         "duration_s": round(time.time() - started, 3), "player": launcher.player_status,
         "bad_messages": {n: s["bad"] for n, s in launcher.stats.items() if s.get("bad")},
         "services": launcher.stats,
+        "outcomes": launcher.outcomes,
         "files": sorted(p.name for p in out.glob("run*.mcap")),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     bad = sum(sum(b.values()) for b in summary["bad_messages"].values())
+    kinds = Counter("success" if o["success"] else o["failure"] for o in launcher.outcomes)
     launcher.log(f"{why}: {launcher.player_status.get('frames', 0)} frames, {bad} bad messages;"
+                 f" grasps {dict(kinds) or 'none'};"
                  f" exit codes {codes}; wrote {out / 'summary.json'}")
     if why == "interrupted":
         return 130

@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predictor": ("wavegrasp.predictor.main", "centroids -> the object's motion a period ahead"),
     "planner": ("wavegrasp.planner.main", "predictions -> a grasp and its timed trajectory"),
     "gate": ("wavegrasp.gate.main", "plans -> go / no-go (prediction error, freshness, health)"),
+    "sim": ("wavegrasp.sim.main", "PyBullet executes approved plans and judges each grasp"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
 }

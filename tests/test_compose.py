@@ -45,7 +45,7 @@ def test_launcher_reads_services_in_dependency_order() -> None:
     assert services["player"].labels["wavegrasp.ends-run"] == "true"
     assert services["player"].depends_on == {
         name: "service_healthy"
-        for name in ("recorder", "perception", "predictor", "planner", "gate")}
+        for name in ("recorder", "perception", "predictor", "planner", "gate", "sim")}
 
 
 def test_interpolation_follows_compose_rules() -> None:

@@ -79,6 +79,7 @@ class PlannerService(Service):
         self.config = PlannerConfig()
         self.tf = StaticTransforms()
         self.q_now = self.arm.q_home.copy()
+        self.arm_moving = False
         self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
         self.busy_until_ns = 0
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
@@ -102,6 +103,9 @@ class PlannerService(Service):
         if missing:
             raise ValueError(f"arm_state lacks joints {', '.join(missing)}")
         self.q_now = np.array([by_name[n] for n in self.arm.joint_names])
+        # A plan starts from rest: none while the arm executes or returns to standby.
+        self.arm_moving = msg.executing_plan_id is not None or (
+            bool(msg.velocities) and max(abs(v) for v in msg.velocities) > 0.02)
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         if msg.go:
@@ -131,7 +135,7 @@ class PlannerService(Service):
                 self.bus.count_bad("wavegrasp/predictor/prediction", str(exc))
 
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
-        if not msg.warm or msg.header.stamp_ns < self.busy_until_ns:
+        if not msg.warm or msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             return
         try:

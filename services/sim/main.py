@@ -1,0 +1,173 @@
+"""``wavegrasp sim``: PyBullet executes approved plans on the recording's clock.
+
+The arm (ours, or ``WAVEGRASP_ARM_URDF``) stands on its mount from ``tf_static``; the object,
+a sphere or an upright cylinder of the size perception reports, follows
+``groundtruth/object`` (or, in a recording without ground truth, the tracked centroid)
+through a bounded-force drive. A ``go`` from the gate starts the plan; the jaw closes at the
+grasp time; the grasp is judged physically (:mod:`wavegrasp.sim.executor`) and published on
+``wavegrasp/sim/outcome``; the arm returns to standby and the pipeline tries again, up to
+``attempts`` per trial. ``wavegrasp/sim/arm_state`` is published once a camera frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.arm import ArmModel
+from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose, decode_tf
+from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import new_header
+from wavegrasp.schemas import ArmState, GateDecision, GraspOutcome, GraspPlan, ObjectObservation
+from wavegrasp.sim.executor import Attempt, Executor, Result
+from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
+
+OUTCOME_KEY = "wavegrasp/sim/outcome"
+ARM_STATE_KEY = "wavegrasp/sim/arm_state"
+#: Without ground truth for this long (recording seconds), the tracked centroid drives.
+TRUTH_STALE_S = 0.5
+
+
+class SimSettings(Settings):
+    arm_urdf: str | None = None
+    gui: bool = False
+    attempts: int = 3
+    trial: int = 0
+    drive_force_n: float = 5.0
+
+
+class SimService(Service):
+    ack_after = "gate"
+
+    def __init__(self, settings: SimSettings, bus: Bus | None = None) -> None:
+        self.arm = ArmModel.load(settings.arm_urdf or None)  # before the bus: fail cleanly
+        super().__init__(settings, bus)
+        self.cfg = settings
+        self.tf = StaticTransforms()
+        self.shape: ObjectShape | None = None
+        self.world: SimWorld | None = None
+        self.executor: Executor | None = None
+        self.plans: dict[str, GraspPlan] = {}
+        self.attempt = 0
+        self.succeeded = False
+        self._truth_at = -np.inf
+        self._executing: str | None = None
+        self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
+        self.bus.subscribe("groundtruth/object", self.on_truth)
+        self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
+        self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
+        self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+
+    # --- inputs -------------------------------------------------------------------------
+
+    def on_truth(self, d: Delivery) -> None:
+        T, _frame, stamp_ns = decode_pose(d.payload)
+        self._truth_at = stamp_ns * 1e-9
+        self.advance(stamp_ns * 1e-9, T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat())
+
+    def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
+        if self.shape is None and msg.radius_m is not None and msg.shape is not None:
+            length = msg.length_m or 2 * msg.radius_m
+            self.shape = ObjectShape(msg.shape, msg.radius_m, length)
+        c, t = msg.centroid, msg.header.stamp_ns * 1e-9
+        if c is not None and t - self._truth_at > TRUTH_STALE_S:
+            axis = np.array([0.0, 0.0, 1.0]) if msg.axis is None else np.array(
+                [msg.axis.x, msg.axis.y, msg.axis.z])
+            quat = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0].as_quat()
+            self.advance(t, np.array([c.x, c.y, c.z]), quat)
+
+    def on_plan(self, msg: GraspPlan, _d: Delivery) -> None:
+        self.plans[msg.plan_id] = msg
+        while len(self.plans) > 20:
+            self.plans.pop(next(iter(self.plans)))
+
+    def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
+        if not msg.go:
+            return
+        if self.succeeded or self.attempt >= self.cfg.attempts:
+            self.counters["ignored: trial over"] += 1
+            return
+        if self.executor is None or self.executor.busy:
+            self.counters["ignored: busy" if self.executor else "ignored: no scene yet"] += 1
+            return
+        plan = self.plans.get(msg.plan_id)
+        if plan is None:
+            raise ValueError(f"decision for plan {msg.plan_id} that never arrived")
+        self.executor.start(Attempt.from_message(plan, self.arm.joint_names))
+        self.attempt += 1
+        self._executing = msg.plan_id
+        self.counters["attempts"] += 1
+
+    # --- the scene ----------------------------------------------------------------------
+
+    def advance(self, t_s: float, position: np.ndarray, quat: np.ndarray) -> None:
+        if self.world is None and not self.build(t_s, position, quat):
+            return
+        assert self.world is not None and self.executor is not None
+        if t_s <= self.world.time_s:
+            return  # a repeated or older stamp: the scene already is there
+        if t_s - self.world.time_s > 1.0:  # a gap in the recording: jump, do not simulate it
+            self.world.time_s = t_s - STEP_S
+        result = self.executor.advance(t_s, position, quat)
+        if result is not None:
+            self.publish_outcome(result)
+
+    def build(self, t_s: float, position: np.ndarray, quat: np.ndarray) -> bool:
+        """Create the scene once the arm's mount and the object's size are known."""
+        if self.shape is None:
+            return False
+        try:
+            T_world_base = self.tf.lookup("world", self.arm.base_link)
+        except ValueError:
+            return False
+        self.world = SimWorld(self.arm, T_world_base, self.shape, self.cfg.drive_force_n,
+                              gui=self.cfg.gui)
+        self.world.place_object(position, quat)
+        self.world.time_s = t_s
+        self.executor = Executor(self.world)
+        return True
+
+    # --- outputs ------------------------------------------------------------------------
+
+    def publish_outcome(self, result: Result) -> None:
+        self.succeeded = self.succeeded or result.success
+        self.counters["success" if result.success else f"failure: {result.failure}"] += 1
+        self._executing = None
+        assert self.world is not None
+        self.bus.publish(OUTCOME_KEY, GraspOutcome(
+            header=new_header(self.name, self.attempt, int(round(self.world.time_s * 1e9))),
+            plan_id=result.plan_id, trial=self.cfg.trial, attempt=self.attempt,
+            success=result.success, failure=result.failure, evidence=result.evidence))
+
+    def finish_frame(self, frame_seq: int) -> None:
+        if self.world is None:
+            return
+        q, qd = self.world.arm_q()
+        self.bus.publish(ARM_STATE_KEY, ArmState(
+            header=new_header(self.name, frame_seq, int(round(self.world.time_s * 1e9))),
+            joint_names=list(self.arm.joint_names), positions=q.tolist(),
+            velocities=qd.tolist(), jaw_opening_m=self.world.jaw_opening(),
+            executing_plan_id=self._executing))
+
+    def on_stop(self) -> None:
+        if self.world is not None:
+            self.world.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="wavegrasp sim", description=__doc__)
+    parser.add_argument("--gui", action="store_true", help="open PyBullet's window")
+    args = parser.parse_args(argv)
+    try:
+        settings = SimSettings.from_env("sim", **({"gui": True} if args.gui else {}))
+        service = SimService(settings)
+    except ValueError as exc:
+        print(f"wavegrasp sim: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    return service.run()
