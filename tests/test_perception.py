@@ -67,8 +67,9 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         rng = np.random.default_rng(0)
         far = rng.uniform(-1, 1, (500, 3)) + [0, 0, 20]  # nothing but far-away specks
         nan_cloud = np.full((100, 3), np.nan)
-        assert feed("trisect/points", points_cdr(far[:10])) is True  # before tf: unknown frame
-        assert feed("tf_static", tf.cdr) is True
+        assert feed("trisect/points", points_cdr(far[:10])) is True  # before tf: it waits
+        assert feed("tf_static", tf.cdr) is True  # and is processed now
+        assert feed("trisect/points", points_cdr(far[:10], frame_id="nowhere")) is True
         assert feed("trisect/points", points_cdr(np.zeros((0, 3)))) is True
         assert feed("trisect/points", points_cdr(nan_cloud)) is True
         assert feed("trisect/points", points_cdr(far[:, :2], fields="xy")) is False
@@ -78,16 +79,18 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         def all_seen() -> bool:
             while not bus.inbox.empty():
                 bus.dispatch(bus.inbox.get())
-            return len(seen) >= 6
+            return len(seen) >= 7
 
         assert wait_until(all_seen, timeout=5), [m.reason for m in seen]
         reasons = [m.reason for m in seen]
         assert all(m.centroid is None for m in seen)
-        assert reasons[0].startswith("unknown frame") and "trisect_optical" in reasons[0]
-        assert reasons[1:3] == ["empty cloud", "empty cloud"]  # NaN points are dropped
-        assert "no field z" in reasons[3]
-        assert reasons[4] == "no object-like cluster in the workspace"
-        assert reasons[5].startswith("bad cloud")
+        assert reasons[0] == "no object-like cluster in the workspace"
+        # A frame whose transform never comes is reported when the next frame arrives.
+        assert reasons[1].startswith("unknown frame") and "nowhere" in reasons[1]
+        assert reasons[2:4] == ["empty cloud", "empty cloud"]  # NaN points are dropped
+        assert "no field z" in reasons[4]
+        assert reasons[5] == "no object-like cluster in the workspace"
+        assert reasons[6].startswith("bad cloud")
         assert service.counters["nonfinite_points"] == 100
         assert bus.bad["trisect/points"] == 2 and bus.bad["tf_static"] == 1
     finally:

@@ -74,10 +74,10 @@ def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
 
 
 def test_lockstep_runs_repeat_exactly(tmp_path: Path) -> None:
-    """Lockstep waits for the gate's acknowledgement of each frame (the chain perception ->
-    predictor -> planner -> gate), so two runs plan and decide exactly alike."""
+    """Lockstep waits for the sim's acknowledgement of each frame (the chain perception ->
+    predictor -> planner -> gate -> sim), so two runs plan, decide and grasp exactly alike."""
     rec = tmp_path / "can.mcap"
-    generate(RecordConfig(wave=2, object="can_half", seconds=13.0, seed=3, preroll_s=5.0), rec)
+    generate(RecordConfig(wave=2, object="can_half", seconds=16.0, seed=3, preroll_s=5.0), rec)
     runs = []
     for name in ("a", "b"):
         out = tmp_path / name
@@ -89,8 +89,11 @@ def test_lockstep_runs_repeat_exactly(tmp_path: Path) -> None:
                  for p in read(out, "wavegrasp/planner/plan")]
         decisions = [(d["plan_id"], d["go"], d["reason"])
                      for d in read(out, "wavegrasp/gate/decision")]
-        acked = [a["frame_seq"] for a in read(out, "wavegrasp/gate/ack")]
-        assert len(acked) == 130 and acked == sorted(acked)
-        runs.append((plans, decisions))
+        outcomes = [(o["plan_id"], o["success"], o["failure"], o["evidence"])
+                     for o in read(out, "wavegrasp/sim/outcome")]
+        acked = [a["frame_seq"] for a in read(out, "wavegrasp/sim/ack")]
+        assert len(acked) == 160 and acked == sorted(acked)
+        runs.append((plans, decisions, outcomes))
     assert runs[0][0], "no plan in lockstep"
+    assert runs[0][2], "no grasp attempt in lockstep"
     assert runs[0] == runs[1]

@@ -56,8 +56,15 @@ class PerceptionService(Service):
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh")
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
-        self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
+        self._waiting: Delivery | None = None  # a frame whose transform has not come yet
+        self.bus.subscribe("tf_static", self.on_tf)
         self.bus.subscribe("trisect/points", self.on_points)
+
+    def on_tf(self, d: Delivery) -> None:
+        self.tf.update(decode_tf(d.payload))
+        if self._waiting is not None:  # tf_static and the first frame arrive together
+            waiting, self._waiting = self._waiting, None
+            self.on_points(waiting)
 
     def header(self, d: Delivery, stamp_ns: int) -> Header:
         """Trace: the source's publish time (CDR attachment), then this service's receipt."""
@@ -68,20 +75,34 @@ class PerceptionService(Service):
                       trace=[*hops, Hop(service=self.name, recv_ns=d.recv_ns)])
 
     def on_points(self, d: Delivery) -> None:
-        """Process one camera frame; acknowledge it whatever came of it (the lockstep chain)."""
+        """Process one camera frame; acknowledge it whatever came of it (the lockstep chain).
+
+        A frame whose camera transform is not known yet waits for ``tf_static`` (zenoh may
+        hand over the first frame before the transform sent just ahead of it) until the next
+        frame comes; then it is reported without a centroid.
+        """
+        if self._waiting is not None:
+            waiting, self._waiting = self._waiting, None
+            self.on_points_now(waiting, wait_for_tf=False)
+        self.on_points_now(d, wait_for_tf=True)
+
+    def on_points_now(self, d: Delivery, wait_for_tf: bool) -> None:
         try:
-            self.process_frame(d)
+            if self.process_frame(d, wait_for_tf):
+                self._waiting = d
+                return
         finally:
             try:
                 att = CdrAttachment.decode(d.attachment)
             except ValueError:
                 att = None  # counted as a bad message already; no frame to acknowledge
-            if att is not None:
+            if att is not None and self._waiting is not d:
                 self.ack_frame(Header(seq=att.seq, stamp_ns=att.log_time_ns, frame_id="world",
                                       trace=[Hop(service="source", recv_ns=att.source_ns,
                                                  sent_ns=att.source_ns)]), d.recv_ns, att.seq)
 
-    def process_frame(self, d: Delivery) -> None:
+    def process_frame(self, d: Delivery, wait_for_tf: bool = False) -> bool:
+        """Process a frame; True if it has to wait for its camera transform."""
         try:
             cloud = decode_points(d.payload)
         except ValueError as exc:
@@ -91,17 +112,24 @@ class PerceptionService(Service):
         if cloud.dropped_nonfinite:
             self.counters["nonfinite_points"] += cloud.dropped_nonfinite
         if not len(cloud.points):
-            return self.publish_missing(header, "empty cloud")
+            self.publish_missing(header, "empty cloud")
+            return False
         try:
             T = self.tf.lookup("world", cloud.frame_id)
         except ValueError as exc:
-            return self.publish_missing(header, f"unknown frame: {exc}")
+            if wait_for_tf:
+                self._seq -= 1  # the header is made again when it is processed
+                return True
+            self.publish_missing(header, f"unknown frame: {exc}")
+            return False
         result = self.perception.process(cloud.points, T, cloud.stamp_ns)
         if result.fit is None:
-            return self.publish_missing(header, result.reason or "no object")
+            self.publish_missing(header, result.reason or "no object")
+            return False
         self.publish_observation(header, result, len(cloud.points))
         if self.perception.prior is not None:
             self.accumulator.add(result.points, result.fit.centre, object_rotation(result.fit.axis))
+        return False
 
     def publish_missing(self, header: Header, reason: str) -> None:
         self.counters[f"missing: {reason.split(':')[0]}"] += 1

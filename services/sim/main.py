@@ -5,8 +5,9 @@ a sphere or an upright cylinder of the size perception reports, follows
 ``groundtruth/object`` (or, in a recording without ground truth, the tracked centroid)
 through a bounded-force drive. A ``go`` from the gate starts the plan; the jaw closes at the
 grasp time; the grasp is judged physically (:mod:`wavegrasp.sim.executor`) and published on
-``wavegrasp/sim/outcome``; the arm returns to standby and the pipeline tries again, up to
-``attempts`` per trial. ``wavegrasp/sim/arm_state`` is published once a camera frame.
+``wavegrasp/sim/outcome`` with the next camera frame's acknowledgement; the arm returns to
+standby and the pipeline tries again, up to ``attempts`` per trial.
+``wavegrasp/sim/arm_state`` is published once a camera frame.
 """
 
 from __future__ import annotations
@@ -57,6 +58,8 @@ class SimService(Service):
         self.succeeded = False
         self._truth_at = -np.inf
         self._executing: str | None = None
+        self._pose: tuple[float, np.ndarray, np.ndarray] | None = None  # the newest, to build
+        self._results: list[Result] = []
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("groundtruth/object", self.on_truth)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
@@ -106,21 +109,23 @@ class SimService(Service):
     # --- the scene ----------------------------------------------------------------------
 
     def advance(self, t_s: float, position: np.ndarray, quat: np.ndarray) -> None:
-        if self.world is None and not self.build(t_s, position, quat):
+        self._pose = (t_s, position, quat)
+        if self.world is None or self.executor is None:
             return
-        assert self.world is not None and self.executor is not None
         if t_s <= self.world.time_s:
             return  # a repeated or older stamp: the scene already is there
         if t_s - self.world.time_s > 1.0:  # a gap in the recording: jump, do not simulate it
             self.world.time_s = t_s - STEP_S
         result = self.executor.advance(t_s, position, quat)
-        if result is not None:
-            self.publish_outcome(result)
+        if result is not None:  # published with the frame, so lockstep runs see it alike
+            self._results.append(result)
 
-    def build(self, t_s: float, position: np.ndarray, quat: np.ndarray) -> bool:
-        """Create the scene once the arm's mount and the object's size are known."""
-        if self.shape is None:
+    def build(self) -> bool:
+        """Create the scene once the arm's mount, the object's size and pose are known (at a
+        frame's acknowledgement, so a lockstep run builds it at the same moment each time)."""
+        if self.shape is None or self._pose is None:
             return False
+        t_s, position, quat = self._pose
         try:
             T_world_base = self.tf.lookup("world", self.arm.base_link)
         except ValueError:
@@ -145,8 +150,12 @@ class SimService(Service):
             success=result.success, failure=result.failure, evidence=result.evidence))
 
     def finish_frame(self, frame_seq: int) -> None:
-        if self.world is None:
+        if self.world is None and not self.build():
             return
+        assert self.world is not None
+        for result in self._results:
+            self.publish_outcome(result)
+        self._results.clear()
         q, qd = self.world.arm_q()
         self.bus.publish(ARM_STATE_KEY, ArmState(
             header=new_header(self.name, frame_seq, int(round(self.world.time_s * 1e9))),
