@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -20,6 +21,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: The commands that run a service loop (:class:`wavegrasp.runtime.service.Service`).
+SERVICES = {"player", "recorder", "perception", "predictor", "planner", "gate", "sim"}
+
+
 def usage() -> str:
     lines = ["usage: wavegrasp COMMAND [ARGS]", "", "commands:"]
     lines += [f"  {name:10s} {help_}" for name, (_, help_) in COMMANDS.items()]
@@ -35,5 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"wavegrasp: unknown command {name!r}\n\n{usage()}", file=sys.stderr)
         return 2
+    if name in SERVICES:
+        # Block the stop signals before any library starts a thread (threads inherit the
+        # mask): the service loop then takes them with sigtimedwait, whichever thread the
+        # kernel would have picked and whatever handler a library installed.
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     module = importlib.import_module(COMMANDS[name][0])
     return int(module.main(rest) or 0)

@@ -22,6 +22,7 @@ from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import Clock, FrameAck, Header, ServiceStats, ack_key, stats_key
 
 log = logging.getLogger(__name__)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def setup_logging(level: str = "INFO") -> None:
@@ -98,8 +99,15 @@ class Service:
             bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason), counters=dict(self.counters),
             uptime_s=time.monotonic() - self._started))
 
+    def check_signals(self) -> None:
+        """Stop on a pending SIGINT/SIGTERM (``wavegrasp <service>`` blocks them: see
+        :meth:`handle_signals`)."""
+        if signal.sigtimedwait(STOP_SIGNALS, 0) is not None:
+            self.stopping.set()
+
     def drain(self, max_items: int | None = None) -> int:
         """Handle what is in the inbox now (at most ``max_items``); returns how many."""
+        self.check_signals()
         n = 0
         while max_items is None or n < max_items:
             try:
@@ -112,6 +120,7 @@ class Service:
 
     def step(self, timeout_s: float) -> None:
         """One turn of the loop: wait up to ``timeout_s`` for input, handle it, tick."""
+        self.check_signals()
         try:
             delivery = self.bus.inbox.get(timeout=timeout_s)
             self.bus.dispatch(delivery)
@@ -134,11 +143,12 @@ class Service:
     def handle_signals(self) -> None:
         """Install (again) the SIGINT/SIGTERM handlers that stop the loop.
 
-        Again, because a native library may take the process's handlers over after start-up
-        (seen: a service that had processed data no longer stopped on SIGTERM); installing
-        them is one cheap system call each.
+        ``wavegrasp <service>`` blocks these signals from the start and each turn of the loop
+        takes a pending one (:meth:`step`): a handler alone was not enough (rarely, under
+        load, a service ignored SIGTERM with its handler installed and the signal neither
+        blocked nor pending). The handlers serve a service run some other way.
         """
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, *_: object) -> None:
