@@ -2,8 +2,9 @@
 
 Starts the services in dependency order (the router first), waits for each dependency's
 liveliness token where compose asks for ``service_healthy``, prefixes every log line with the
-service's name, and stops everything, in reverse order, when the service labelled
-``wavegrasp.ends-run`` (the player) finishes, when one crashes, or on Ctrl-C. Writes
+service's name, and stops everything, in reverse order, when a service labelled
+``wavegrasp.ends-run`` finishes (the player at the recording's end, or the sim after its
+last trial when asked to), when one crashes, or on Ctrl-C. Writes
 ``OUT/run.mcap`` (through the recorder) and ``OUT/summary.json``. Exit code: 0 when the run
 completed, 1 when a service crashed, 2 for bad arguments, 130 after Ctrl-C.
 """
@@ -143,7 +144,7 @@ class Launcher:
             self.pump_bus()
             if self.crashed():
                 return "crashed"
-            if enders and all(self.procs[n].poll() == 0 for n in enders):
+            if any(self.procs[n].poll() == 0 for n in enders):
                 return "finished"
             time.sleep(0.05)
         return "interrupted"

@@ -16,6 +16,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "planner": ("wavegrasp.planner.main", "predictions -> a grasp and its timed trajectory"),
     "gate": ("wavegrasp.gate.main", "plans -> go / no-go (prediction error, freshness, health)"),
     "sim": ("wavegrasp.sim.main", "PyBullet executes approved plans and judges each grasp"),
+    "eval": ("wavegrasp.ops.experiment", "the paper's experiment: trials per predictor and "
+             "configuration"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
 }

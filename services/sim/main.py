@@ -13,9 +13,11 @@ standby and the pipeline tries again, up to ``attempts`` per trial.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
@@ -28,6 +30,7 @@ from wavegrasp.schemas import ArmState, GateDecision, GraspOutcome, GraspPlan, O
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
 
+log = logging.getLogger("wavegrasp.sim")
 OUTCOME_KEY = "wavegrasp/sim/outcome"
 ARM_STATE_KEY = "wavegrasp/sim/arm_state"
 #: Without ground truth for this long (recording seconds), the tracked centroid drives.
@@ -37,9 +40,14 @@ TRUTH_STALE_S = 0.5
 class SimSettings(Settings):
     arm_urdf: str | None = None
     gui: bool = False
-    attempts: int = 3
-    trial: int = 0
+    trials: int = Field(1, ge=1, description="trials in this run, one after the other")
+    attempts: int = Field(3, ge=1, description="attempts a trial at most")
+    trial_timeout_s: float = Field(10.0, gt=0, description="a trial with no plan approved "
+                                   "this long (recording seconds) after it began or after "
+                                   "its last attempt ends as a failure")
     drive_force_n: float = 5.0
+    stop_after_trials: bool = Field(False, description="exit once the last trial has ended "
+                                    "(compose labels the sim as ending the run)")
 
 
 class SimService(Service):
@@ -54,8 +62,9 @@ class SimService(Service):
         self.world: SimWorld | None = None
         self.executor: Executor | None = None
         self.plans: dict[str, GraspPlan] = {}
-        self.attempt = 0
-        self.succeeded = False
+        self.trial = 0  # the trial under way, from 0
+        self.attempt = 0  # attempts made in it
+        self._idle_since: float | None = None  # recording s: trial began or attempt ended
         self._truth_at = -np.inf
         self._executing: str | None = None
         self._pose: tuple[float, np.ndarray, np.ndarray] | None = None  # the newest, to build
@@ -90,10 +99,12 @@ class SimService(Service):
             self.plans.pop(next(iter(self.plans)))
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
+        if self._idle_since is None and self.world is not None:  # plans flow: trial 0 begins
+            self._idle_since = self.world.time_s
         if not msg.go:
             return
-        if self.succeeded or self.attempt >= self.cfg.attempts:
-            self.counters["ignored: trial over"] += 1
+        if self.trial >= self.cfg.trials:
+            self.counters["ignored: trials over"] += 1
             return
         if self.executor is None or self.executor.busy:
             self.counters["ignored: busy" if self.executor else "ignored: no scene yet"] += 1
@@ -140,14 +151,37 @@ class SimService(Service):
     # --- outputs ------------------------------------------------------------------------
 
     def publish_outcome(self, result: Result) -> None:
-        self.succeeded = self.succeeded or result.success
+        """Publish an attempt's result; a success or the last attempt ends the trial."""
         self.counters["success" if result.success else f"failure: {result.failure}"] += 1
         self._executing = None
         assert self.world is not None
         self.bus.publish(OUTCOME_KEY, GraspOutcome(
             header=new_header(self.name, self.attempt, int(round(self.world.time_s * 1e9))),
-            plan_id=result.plan_id, trial=self.cfg.trial, attempt=self.attempt,
+            plan_id=result.plan_id, trial=self.trial, attempt=self.attempt,
             success=result.success, failure=result.failure, evidence=result.evidence))
+        self._idle_since = self.world.time_s
+        if result.success or self.attempt >= self.cfg.attempts:
+            self.trial += 1
+            self.attempt = 0
+        if self.trial >= self.cfg.trials and self.cfg.stop_after_trials:
+            log.info("%d trials done: stopping", self.trial)
+            self.stop(0)
+
+    def check_trial_timeout(self) -> None:
+        """End a trial that has waited ``trial_timeout_s`` for an approved plan."""
+        assert self.world is not None and self.executor is not None
+        if (self._idle_since is None or self.executor.busy or self.trial >= self.cfg.trials
+                or self.world.time_s - self._idle_since < self.cfg.trial_timeout_s):
+            return
+        self.counters["trials ended waiting for a plan"] += 1
+        trial = self.trial
+        self.publish_outcome(Result("", False, "other", {
+            "reason": f"no plan approved for {self.cfg.trial_timeout_s:.0f} s",
+            "no_attempt": True}))
+        if self.trial == trial:  # not its last attempt, but the trial is over all the same
+            self.trial, self.attempt = self.trial + 1, 0
+            if self.trial >= self.cfg.trials and self.cfg.stop_after_trials:
+                self.stop(0)
 
     def finish_frame(self, frame_seq: int) -> None:
         if self.world is None and not self.build():
@@ -156,6 +190,8 @@ class SimService(Service):
         for result in self._results:
             self.publish_outcome(result)
         self._results.clear()
+        if self.executor is not None:
+            self.check_trial_timeout()
         q, qd = self.world.arm_q()
         self.bus.publish(ARM_STATE_KEY, ArmState(
             header=new_header(self.name, frame_seq, int(round(self.world.time_s * 1e9))),

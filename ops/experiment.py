@@ -1,0 +1,150 @@
+"""``wavegrasp eval``: the paper's experiment over the full pipeline.
+
+For every predictor × wave condition × object, one lockstep ``wavegrasp up`` (every service a
+process, over zenoh) runs ``--trials`` trials one after the other on a long wave-tank
+recording: each trial starts where the previous one ended, with the arm back at standby, and
+ends at a success or after ``--attempts`` attempts (or when no plan is approved for 10 s).
+Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. ``--jobs`` runs go
+side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from wavegrasp.ops.sample import cached_recording
+from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.wavetank.body import OBJECTS
+from wavegrasp.wavetank.waves import TABLE_I
+
+#: Recording seconds before the first trial (the predictor warms up) and per trial.
+WARMUP_S = 15.0
+PER_TRIAL_S = 6.0
+
+
+@dataclass
+class RunResult:
+    """One predictor on one configuration: per trial, whether it succeeded and on which
+    attempt (0: never), and every attempt's failure kind."""
+
+    predictor: str
+    wave: int
+    object: str
+    trials: int
+    success_attempt: list[int] = field(default_factory=list)
+    failures: dict[str, int] = field(default_factory=dict)
+    unfinished: int = 0
+    seconds: float = 0.0
+    exit_code: int = 0
+
+    def rate(self, within: int) -> float:
+        """Share of the trials that succeeded within ``within`` attempts."""
+        return sum(0 < a <= within for a in self.success_attempt) / max(self.trials, 1)
+
+
+def trial_results(outcomes: list[dict], trials: int, attempts: int
+                  ) -> tuple[list[int], dict[str, int], int]:
+    """From the sim's outcomes: per trial the succeeding attempt (0: none), the failure
+    counts, and how many trials the recording did not reach the end of."""
+    success = [0] * trials
+    ended = [False] * trials
+    failures: dict[str, int] = {}
+    for o in outcomes:
+        k = o["trial"]
+        if k >= trials:
+            continue
+        if o["success"]:
+            success[k], ended[k] = o["attempt"], True
+            continue
+        kind = "no plan approved" if o["evidence"].get("no_attempt") else o["failure"]
+        failures[kind] = failures.get(kind, 0) + 1
+        ended[k] = ended[k] or o["evidence"].get("no_attempt", False) or o["attempt"] >= attempts
+    return success, failures, sum(not e for e in ended)
+
+
+def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, seed: int,
+            out: Path) -> RunResult:
+    recording = cached_recording(wave=wave, object=obj, seed=seed,
+                                 seconds=WARMUP_S + trials * PER_TRIAL_S)
+    run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
+    env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
+           "WAVEGRASP_STOP_AFTER_TRIALS": "true"}
+    started = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "wavegrasp", "up", str(recording), "--pace", "lockstep",
+         "--predictor", predictor, "--out", str(run_dir)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    (run_dir / "up.log").write_text(proc.stdout)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
+    return RunResult(predictor, wave, obj, trials, success, failures, unfinished,
+                     round(time.monotonic() - started, 1), proc.returncode)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="wavegrasp eval", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--trials", type=int, default=20)
+    p.add_argument("--attempts", type=int, default=3)
+    p.add_argument("--predictors", default=f"harmonic,linear,{DEFAULT_MODEL}")
+    p.add_argument("--waves", default=",".join(str(w) for w in TABLE_I))
+    p.add_argument("--objects", default=",".join(OBJECTS))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
+    a = p.parse_args(argv)
+    predictors = a.predictors.split(",")
+    waves = [int(w) for w in a.waves.split(",")]
+    objects = a.objects.split(",")
+    bad = [x for x in predictors if x not in MODELS] + [str(w) for w in waves
+                                                         if w not in TABLE_I]
+    bad += [o for o in objects if o not in OBJECTS]
+    if bad:
+        p.error(f"unknown {', '.join(bad)}: predictors {', '.join(MODELS)}; waves "
+                f"{', '.join(map(str, TABLE_I))}; objects {', '.join(OBJECTS)}")
+    a.out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    # Recordings first (cached; one per configuration, shared by the predictors).
+    configs = [(w, o) for w in waves for o in objects]
+    seconds = WARMUP_S + a.trials * PER_TRIAL_S
+    with ProcessPoolExecutor(a.jobs) as pool:
+        list(tqdm(pool.map(_recording, [(w, o, a.seed, seconds) for w, o in configs]),
+                  total=len(configs), desc="recordings", unit="rec"))
+    jobs = [(pred, w, o) for pred in predictors for w, o in configs]
+    results: list[RunResult] = []
+    with ThreadPoolExecutor(a.jobs) as pool:
+        futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out)
+                   for job in jobs]
+        for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
+            results.append(f.result())
+    order = {job: i for i, job in enumerate(jobs)}
+    results.sort(key=lambda r: order[(r.predictor, r.wave, r.object)])
+    from wavegrasp.ops.report import write_report
+
+    elapsed = time.monotonic() - started
+    write_report(a.out, results, vars(a) | {"out": str(a.out), "elapsed_s": round(elapsed, 1)})
+    print((a.out / "report.md").read_text())
+    return 1 if any(r.exit_code for r in results) else 0
+
+
+def _recording(config: tuple[int, str, int, float]) -> Path:
+    wave, obj, seed, seconds = config
+    return cached_recording(wave=wave, object=obj, seed=seed, seconds=seconds)
+
+
+def as_json(results: list[RunResult]) -> list[dict]:
+    return [asdict(r) for r in results]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

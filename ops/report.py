@@ -1,0 +1,121 @@
+"""The experiment's report: ``report.json``, ``report.md`` and PNG plots (the paper's Fig. 4
+and 5: success per configuration and wave, first attempt and after reattempts, per predictor
+side by side; Table II: what the failures were)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+FAILURES = ["prediction", "collision", "timing", "abrupt_change", "unreachable", "other",
+            "no plan approved"]
+
+
+def write_report(out: Path, results: list, settings: dict) -> None:
+    """results : :class:`~wavegrasp.ops.experiment.RunResult` list, in run order."""
+    from wavegrasp.ops.experiment import as_json
+
+    (out / "report.json").write_text(json.dumps(
+        {"settings": settings, "runs": as_json(results), "summary": summary(results)},
+        indent=2) + "\n")
+    plot_success(out / "success.png", results)
+    plot_failures(out / "failures.png", results)
+    (out / "report.md").write_text(markdown(results, settings))
+
+
+def summary(results: list) -> dict[str, dict[str, float]]:
+    """Per predictor: mean success over configurations, first attempt and within all."""
+    out: dict[str, dict[str, float]] = {}
+    for name in dict.fromkeys(r.predictor for r in results):
+        mine = [r for r in results if r.predictor == name]
+        out[name] = {"first_attempt": float(np.mean([r.rate(1) for r in mine])),
+                     "after_reattempts": float(np.mean([r.rate(99) for r in mine])),
+                     "trials": sum(r.trials for r in mine),
+                     "unfinished": sum(r.unfinished for r in mine)}
+    return out
+
+
+def markdown(results: list, settings: dict) -> str:
+    predictors = list(dict.fromkeys(r.predictor for r in results))
+    configs = list(dict.fromkeys((r.wave, r.object) for r in results))
+    by = {(r.predictor, r.wave, r.object): r for r in results}
+    lines = [f"# wavegrasp eval: {settings['trials']} trials x up to {settings['attempts']} "
+             f"attempts, seed {settings['seed']}, {settings['elapsed_s'] / 60:.1f} min", "",
+             "Success: first attempt / after reattempts.", "",
+             "| wave | object | " + " | ".join(predictors) + " |",
+             "|---|---|" + "---|" * len(predictors)]
+    for wave, obj in configs:
+        cells = [f"{by[p, wave, obj].rate(1):.0%} / {by[p, wave, obj].rate(99):.0%}"
+                 for p in predictors]
+        lines.append(f"| {wave} | {obj} | " + " | ".join(cells) + " |")
+    s = summary(results)
+    lines.append("| **mean** | | " + " | ".join(
+        f"**{s[p]['first_attempt']:.0%} / {s[p]['after_reattempts']:.0%}**"
+        for p in predictors) + " |")
+    lines += ["", "Failed attempts by kind (Table II):", "",
+              "| predictor | " + " | ".join(FAILURES) + " |",
+              "|---|" + "---|" * len(FAILURES)]
+    for p in predictors:
+        counts = [sum(r.failures.get(k, 0) for r in results if r.predictor == p)
+                  for k in FAILURES]
+        lines.append(f"| {p} | " + " | ".join(str(c) for c in counts) + " |")
+    unfinished = sum(r.unfinished for r in results)
+    if unfinished:
+        lines += ["", f"{unfinished} trials did not end before their recording did (counted "
+                  "as failures)."]
+    lines += ["", "![success](success.png)", "", "![failures](failures.png)", ""]
+    return "\n".join(lines)
+
+
+def plot_success(path: Path, results: list) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    predictors = list(dict.fromkeys(r.predictor for r in results))
+    configs = list(dict.fromkeys((r.wave, r.object) for r in results))
+    by = {(r.predictor, r.wave, r.object): r for r in results}
+    x = np.arange(len(configs))
+    width = 0.8 / len(predictors)
+    fig, ax = plt.subplots(figsize=(max(8, len(configs) * 0.9), 4.5))
+    for i, p in enumerate(predictors):
+        after = [100 * by[p, w, o].rate(99) for w, o in configs]
+        first = [100 * by[p, w, o].rate(1) for w, o in configs]
+        bars = ax.bar(x + (i - (len(predictors) - 1) / 2) * width, after, width, label=p,
+                      alpha=0.45)
+        ax.bar(x + (i - (len(predictors) - 1) / 2) * width, first, width,
+               color=bars.patches[0].get_facecolor(), alpha=1.0)
+    ax.set_xticks(x, [f"wave {w}\n{o}" for w, o in configs], fontsize=8)
+    ax.set_ylabel("grasp success, % of trials")
+    ax.set_ylim(0, 105)
+    ax.set_title("Success per configuration: solid first attempt, pale after reattempts")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_failures(path: Path, results: list) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    predictors = list(dict.fromkeys(r.predictor for r in results))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    bottom = np.zeros(len(predictors))
+    for kind in FAILURES:
+        counts = np.array([sum(r.failures.get(kind, 0) for r in results if r.predictor == p)
+                           for p in predictors], dtype=float)
+        if counts.any():
+            ax.bar(predictors, counts, bottom=bottom, label=kind)
+            bottom += counts
+    ax.set_ylabel("failed attempts")
+    ax.set_title("Failures by kind (the paper's Table II)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
