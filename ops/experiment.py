@@ -3,7 +3,7 @@
 For every predictor × wave condition × object, one lockstep ``wavegrasp up`` (every service a
 process, over zenoh) runs ``--trials`` trials one after the other on a long wave-tank
 recording: each trial starts where the previous one ended, with the arm back at standby, and
-ends at a success or after ``--attempts`` attempts (or when no plan is approved for 10 s).
+ends at a success or after ``--attempts`` attempts (or when no plan is approved for 5 s).
 Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. ``--jobs`` runs go
 side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
 """
@@ -29,7 +29,9 @@ from wavegrasp.wavetank.waves import TABLE_I
 
 #: Recording seconds before the first trial (the predictor warms up) and per trial.
 WARMUP_S = 15.0
-PER_TRIAL_S = 6.0
+PER_TRIAL_S = 5.0
+#: A trial with no plan approved this long (recording seconds) ends as a failure.
+TRIAL_TIMEOUT_S = 5.0
 
 
 @dataclass
@@ -78,7 +80,7 @@ def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, see
                                  seconds=WARMUP_S + trials * PER_TRIAL_S)
     run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
-           "WAVEGRASP_STOP_AFTER_TRIALS": "true"}
+           "WAVEGRASP_STOP_AFTER_TRIALS": "true", "WAVEGRASP_TRIAL_TIMEOUT_S": str(TRIAL_TIMEOUT_S)}
     started = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-m", "wavegrasp", "up", str(recording), "--pace", "lockstep",

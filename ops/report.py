@@ -52,7 +52,7 @@ def markdown(results: list, settings: dict) -> str:
         lines.append(f"| {wave} | {obj} | " + " | ".join(cells) + " |")
     s = summary(results)
     lines.append("| **mean** | | " + " | ".join(
-        f"**{s[p]['first_attempt']:.0%} / {s[p]['after_reattempts']:.0%}**"
+        f"**{s[p]['first_attempt']:.1%} / {s[p]['after_reattempts']:.1%}**"
         for p in predictors) + " |")
     lines += ["", "Failed attempts by kind (Table II):", "",
               "| predictor | " + " | ".join(FAILURES) + " |",
@@ -92,7 +92,7 @@ def plot_success(path: Path, results: list) -> None:
     ax.set_ylabel("grasp success, % of trials")
     ax.set_ylim(0, 105)
     ax.set_title("Success per configuration: solid first attempt, pale after reattempts")
-    ax.legend()
+    ax.legend(loc="lower right", framealpha=0.95)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -106,3 +106,36 @@ def test_attempt_from_a_plan_message_names_what_is_wrong(arm) -> None:
                     approach=Vec3(x=0, y=0, z=-1))
     with pytest.raises(ValueError, match="no joint_trajectory"):
         Attempt.from_message(msg, arm.joint_names)
+
+
+def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_base) -> None:
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim", trials=3, attempts=2, trial_timeout_s=10.0,
+                                 stop_after_trials=True), bus=bus)
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.executor = Executor(sim.world)
+        sim.world.time_s = 100.0
+        sim.attempt = 1
+        sim.publish_outcome(Result("a", False, "timing"))  # trial 0, attempt 1 of 2
+        assert (sim.trial, sim.attempt) == (0, 1)
+        sim.attempt = 2
+        sim.publish_outcome(Result("b", False, "prediction"))  # its last attempt
+        assert (sim.trial, sim.attempt) == (1, 0)
+        sim.attempt = 1
+        sim.publish_outcome(Result("c", True, None))  # a success ends trial 1
+        assert (sim.trial, sim.attempt) == (2, 0) and not sim.stopping.is_set()
+        sim.world.time_s = 109.0
+        sim.check_trial_timeout()  # 9 s without an approved plan: still waiting
+        assert sim.trial == 2
+        sim.world.time_s = 110.5
+        sim.check_trial_timeout()  # 10 s: trial 2 ends as a failure, and with it the run
+        assert sim.trial == 3 and sim.stopping.is_set()
+        assert sim.counters["trials ended waiting for a plan"] == 1
+    finally:
+        sim.world.close()
+        bus.close()

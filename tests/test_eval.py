@@ -1,0 +1,61 @@
+"""``wavegrasp eval``: trials are counted from the sim's outcomes; a small experiment end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+from wavegrasp.ops.experiment import RunResult, trial_results
+
+from conftest import wavegrasp_cmd
+
+
+def outcome(trial: int, attempt: int, success: bool, failure: str | None = None,
+            **evidence) -> dict:
+    return {"trial": trial, "attempt": attempt, "success": success, "failure": failure,
+            "evidence": evidence}
+
+
+def test_trials_are_counted_from_the_outcomes() -> None:
+    outcomes = [
+        outcome(0, 1, True),                                   # first attempt
+        outcome(1, 1, False, "timing"), outcome(1, 2, True),   # second attempt
+        outcome(2, 1, False, "collision"), outcome(2, 2, False, "prediction"),
+        outcome(2, 3, False, "prediction"),                    # three failures: trial over
+        outcome(3, 0, False, "other", no_attempt=True),        # nothing approved in time
+        outcome(4, 1, False, "timing"),                        # the recording ended
+    ]
+    success, failures, unfinished = trial_results(outcomes, trials=5, attempts=3)
+    assert success == [1, 2, 0, 0, 0]
+    assert failures == {"timing": 2, "collision": 1, "prediction": 2, "no plan approved": 1}
+    assert unfinished == 1
+    run = RunResult("blend", 2, "can_half", 5, success, failures, unfinished)
+    assert run.rate(1) == 0.2 and run.rate(3) == 0.4
+
+
+def run_eval(out: Path) -> dict:
+    result = subprocess.run(wavegrasp_cmd(
+        "eval", "--out", str(out), "--trials", "2", "--waves", "2", "--objects", "can_half",
+        "--predictors", "blend", "--jobs", "1"), capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return json.loads((out / "report.json").read_text())
+
+
+def test_a_small_experiment_end_to_end_repeats_exactly(tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    report = run_eval(out)
+    (run,) = report["runs"]
+    assert run["predictor"] == "blend" and run["trials"] == 2
+    # The report counts exactly what the sim published in the run.
+    summary = json.loads((out / "runs" / "blend-wave2-can_half" / "summary.json").read_text())
+    assert summary["ended"] == "finished"
+    success, _, _ = trial_results(summary["outcomes"], 2, 3)
+    assert run["success_attempt"] == success
+    assert sum(a > 0 for a in success) >= 1, summary["outcomes"]
+    assert (out / "success.png").stat().st_size > 1000
+    assert (out / "failures.png").stat().st_size > 1000
+    assert "| 2 | can_half |" in (out / "report.md").read_text()
+    again = run_eval(tmp_path / "again")  # lockstep: the same trials, attempt for attempt
+    assert again["runs"][0]["success_attempt"] == run["success_attempt"]
+    assert again["runs"][0]["failures"] == run["failures"]
