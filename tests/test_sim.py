@@ -37,21 +37,25 @@ def T_world_base() -> np.ndarray:
     return pose_matrix(*arm_mount())
 
 
-def plan_for(arm: ArmModel, T_world_base: np.ndarray, offset=(0.0, 0.0, 0.0)) -> Plan:
-    """The planner's plan for a prediction that is the truth, shifted by ``offset``."""
+def plan_for(arm: ArmModel, T_world_base: np.ndarray, offset=(0.0, 0.0, 0.0)
+             ) -> tuple[Plan, PredictedPath]:
+    """The planner's plan for a prediction that is the truth shifted by ``offset``, and that
+    prediction."""
     t = NOW + np.arange(41) * 0.1
     path = PredictedPath(t, np.array([swing(x) for x in t]) + offset, np.full(41, 0.002),
                          2 * np.pi / OMEGA)
     plan = plan_grasp(path, NOW, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
     assert isinstance(plan, Plan), plan
-    return plan
+    return plan, path
 
 
-def execute(arm: ArmModel, T_world_base: np.ndarray, plan: Plan, late_s: float = 0.0,
-            truth: Callable[[float], np.ndarray] = swing) -> Result:
+def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, PredictedPath],
+            late_s: float = 0.0, truth: Callable[[float], np.ndarray] = swing) -> Result:
+    """Run the plan (approved at NOW) against the ``truth``."""
+    plan, path = planned
     attempt = Attempt("p", plan.times + late_s, plan.q, plan.qd, plan.t_grasp + late_s,
                       plan.grasp_T_world[:3, 3], plan.t_final + late_s, plan.jaw_preshape_m,
-                      plan.t_close + late_s)
+                      plan.t_close + late_s, (path.times_s, path.positions), NOW)
     world = SimWorld(arm, T_world_base, CAN)
     try:
         world.place_object(truth(NOW), UPRIGHT)
@@ -83,11 +87,23 @@ def test_a_plan_5_cm_off_fails_as_prediction_error(arm, T_world_base) -> None:
 
 
 def test_a_plan_that_sweeps_through_the_object_fails_as_collision(arm, T_world_base) -> None:
-    plan = plan_for(arm, T_world_base)
-    in_the_way = plan.tool[len(plan.tool) // 2]  # the object waits where the arm passes
-    result = execute(arm, T_world_base, plan, truth=lambda t: in_the_way)
+    planned = plan_for(arm, T_world_base)
+    in_the_way = planned[0].tool[len(planned[0].tool) // 2]  # it waits where the arm passes
+    result = execute(arm, T_world_base, planned, truth=lambda t: in_the_way)
     assert not result.success and result.failure == "collision", result
     assert result.evidence["before_grasp_s"] > 0
+
+
+def test_motion_that_changes_after_approval_fails_as_abrupt_change(arm, T_world_base) -> None:
+    # The prediction held when the plan was approved; 1 s later the object is carried 5 cm
+    # away from the arm (a gust, a snagged tether) and keeps swinging there.
+    def truth(t: float) -> np.ndarray:
+        return swing(t) + (0.0, 0.05 * min(max(t - NOW - 1.0, 0.0) / 0.3, 1.0), 0.0)
+
+    result = execute(arm, T_world_base, plan_for(arm, T_world_base), truth=truth)
+    assert not result.success and result.failure == "abrupt_change", result
+    assert result.evidence["strayed_m"] > 0.04
+    assert result.evidence["strayed_after_approval_s"] == pytest.approx(1.12, abs=0.1)
 
 
 def test_a_plan_300_ms_late_fails_as_timing(arm, T_world_base) -> None:

@@ -5,15 +5,18 @@ Rules (the README lists them too):
 - **success**: after the jaw closes at the grasp time and settles, both fingers touch the object
   and it stays between them for ``hold_s`` while its drive keeps pulling it along its path.
 - Otherwise the first rule that holds names the failure:
-  1. **collision**: before the jaw closed, an arm link other than the fingers touched the
+  1. **abrupt change**: the prediction the plan came from still held when the plan was
+     approved (within ``abrupt_m`` / 2 of the object), then, before the grasp time, the
+     object strayed more than ``abrupt_m`` from it (whatever went wrong next, it caused);
+  2. **collision**: before the jaw closed, an arm link other than the fingers touched the
      object, or a finger did before the final move began;
-  2. **unreachable**: at the grasp time the tool was more than ``reach_tol_m`` from the
+  3. **unreachable**: at the grasp time the tool was more than ``reach_tol_m`` from the
      planned grasp point (the arm could not follow its trajectory);
-  3. **timing**: the object was not at the grasp point at the grasp time, but it passed
+  4. **timing**: the object was not at the grasp point at the grasp time, but it passed
      within ``pass_tol_m`` of it within ``timing_window_s`` before or after (the arm arrived
      early or late);
-  4. **prediction**: the object came nowhere near the grasp point (the prediction was wrong);
-  5. **other**: the object was there on time and still not held (it slipped).
+  5. **prediction**: the object came nowhere near the grasp point (the prediction was wrong);
+  6. **other**: the object was there on time and still not held (it slipped).
 
 Times are seconds on the recording clock; positions metres, ``world``.
 """
@@ -36,6 +39,7 @@ class JudgeConfig(BaseModel):
     reach_tol_m: float = 0.02
     pass_tol_m: float = 0.015
     timing_window_s: float = 0.5
+    abrupt_m: float = 0.02
     closed_m: float = Field(0.0, description="the jaw's commanded opening when closing")
 
 
@@ -55,6 +59,10 @@ class Attempt:
     final_from: float
     jaw_preshape_m: float
     t_close: float
+    #: The prediction the plan came from: times (m,) s and positions (m, 3); and when the
+    #: plan was approved (recording s). Without them abrupt changes are not told apart.
+    predicted: tuple[np.ndarray, np.ndarray] | None = None
+    approved_at: float | None = None
 
     @classmethod
     def from_message(cls, plan: GraspPlan, joint_names: list[str]) -> Attempt:
@@ -156,6 +164,11 @@ class Executor:
             "object_from_tool_m": gap, "jaw_opening_m": w.jaw_opening()}
         if touching >= self._finger_names and gap < 0.05:
             return Result(a.plan_id, True, None, evidence)
+        times = np.array([t for t, _ in self._truth])
+        truth = np.array([p for _, p in self._truth])
+        abrupt = self._abrupt_change(times, truth)
+        if abrupt is not None:  # what went wrong after it, it caused
+            return Result(a.plan_id, False, "abrupt_change", {**evidence, **abrupt})
         if self._touched:
             link, before = max(self._touched.items(), key=lambda kv: kv[1])
             return Result(a.plan_id, False, "collision",
@@ -163,8 +176,7 @@ class Executor:
         reach = float(np.linalg.norm(self._tool_at_grasp - a.p_f))
         if reach > cfg.reach_tol_m:
             return Result(a.plan_id, False, "unreachable", {**evidence, "tool_from_p_f_m": reach})
-        times = np.array([t for t, _ in self._truth])
-        dist = np.linalg.norm(np.array([p for _, p in self._truth]) - a.p_f, axis=1)
+        dist = np.linalg.norm(truth - a.p_f, axis=1)
         near = np.abs(times - a.t_grasp) <= cfg.timing_window_s
         at_grasp = float(np.interp(a.t_grasp, times, dist))
         evidence["object_from_p_f_at_grasp_m"] = at_grasp
@@ -176,6 +188,25 @@ class Executor:
                 **evidence, "object_passed_s": t_pass - a.t_grasp,
                 "arm": "early" if t_pass > a.t_grasp else "late"})
         return Result(a.plan_id, False, "prediction", evidence)
+
+    def _abrupt_change(self, times: np.ndarray, truth: np.ndarray) -> dict | None:
+        """Evidence that the object left the plan's prediction after the approval, or None."""
+        a, limit = self.attempt, self.cfg.abrupt_m
+        assert a is not None
+        if a.predicted is None or a.approved_at is None:
+            return None
+        t_pred, p_pred = a.predicted
+        window = (times >= a.approved_at) & (times <= min(a.t_grasp, t_pred[-1]))
+        if not window.any():
+            return None
+        predicted = np.column_stack([np.interp(times[window], t_pred, p_pred[:, k])
+                                     for k in range(3)])
+        off = np.linalg.norm(truth[window] - predicted, axis=1)
+        if off[0] > limit / 2 or off.max() <= limit:
+            return None
+        return {"strayed_m": float(off.max()),
+                "strayed_after_approval_s": float(times[window][np.argmax(off > limit)]
+                                                  - a.approved_at)}
 
     def _finish(self, result: Result) -> Result:
         """Open the jaw and head back to standby (one ruckig move)."""

@@ -26,7 +26,14 @@ from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import new_header
-from wavegrasp.schemas import ArmState, GateDecision, GraspOutcome, GraspPlan, ObjectObservation
+from wavegrasp.schemas import (
+    ArmState,
+    GateDecision,
+    GraspOutcome,
+    GraspPlan,
+    MotionPrediction,
+    ObjectObservation,
+)
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
 
@@ -62,6 +69,7 @@ class SimService(Service):
         self.world: SimWorld | None = None
         self.executor: Executor | None = None
         self.plans: dict[str, GraspPlan] = {}
+        self.predictions: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.trial = 0  # the trial under way, from 0
         self.attempt = 0  # attempts made in it
         self._idle_since: float | None = None  # recording s: trial began or attempt ended
@@ -72,6 +80,8 @@ class SimService(Service):
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("groundtruth/object", self.on_truth)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
+        self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
+                           MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
 
@@ -93,6 +103,15 @@ class SimService(Service):
             quat = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0].as_quat()
             self.advance(t, np.array([c.x, c.y, c.z]), quat)
 
+    def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
+        """Kept a while: an attempt is judged against the prediction its plan came from."""
+        if len(msg.samples) >= 2:
+            self.predictions[msg.header.seq] = (
+                np.array([x.t_ns for x in msg.samples]) * 1e-9,
+                np.array([[x.x, x.y, x.z] for x in msg.samples]))
+        while len(self.predictions) > 50:
+            self.predictions.pop(next(iter(self.predictions)))
+
     def on_plan(self, msg: GraspPlan, _d: Delivery) -> None:
         self.plans[msg.plan_id] = msg
         while len(self.plans) > 20:
@@ -112,7 +131,10 @@ class SimService(Service):
         plan = self.plans.get(msg.plan_id)
         if plan is None:
             raise ValueError(f"decision for plan {msg.plan_id} that never arrived")
-        self.executor.start(Attempt.from_message(plan, self.arm.joint_names))
+        attempt = Attempt.from_message(plan, self.arm.joint_names)
+        attempt.predicted = self.predictions.get(plan.header.seq)
+        attempt.approved_at = self.world.time_s if self.world is not None else None
+        self.executor.start(attempt)
         self.attempt += 1
         self._executing = msg.plan_id
         self.counters["attempts"] += 1
