@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     # Recordings first (cached; one per configuration, shared by the predictors).
     configs = [(w, o) for w in waves for o in objects]
     seconds = WARMUP_S + a.trials * PER_TRIAL_S
-    with ProcessPoolExecutor(a.jobs) as pool:
+    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
         list(tqdm(pool.map(_recording, [(w, o, a.seed, seconds) for w, o in configs]),
                   total=len(configs), desc="recordings", unit="rec"))
     jobs = [(pred, w, o) for pred in predictors for w, o in configs]
