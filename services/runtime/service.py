@@ -137,11 +137,10 @@ class Service:
         """The service's main loop; returns an exit code. Sources (the player) override it."""
         while not self.stopping.is_set():
             self.step(self.tick_period_s)
-            self.handle_signals()
         return self.exit_code
 
     def handle_signals(self) -> None:
-        """Install (again) the SIGINT/SIGTERM handlers that stop the loop.
+        """Install the SIGINT/SIGTERM handlers that stop the loop.
 
         ``wavegrasp <service>`` blocks these signals from the start and each turn of the loop
         takes a pending one (:meth:`step`): a handler alone was not enough (rarely, under
