@@ -15,7 +15,7 @@ from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
-from wavegrasp.schemas import Clock, Header
+from wavegrasp.schemas import Clock, FrameAck, Header
 
 
 def test_settings_from_env_parse_lists_and_name_bad_variables() -> None:
@@ -57,12 +57,11 @@ def isolated_bus(request: pytest.FixtureRequest):
     bus.close()
 
 
-@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
-def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
-                                           tmp_path: Path) -> None:
-    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path), bus=isolated_bus)
+def recorder_deliveries(bus: Bus, recording: Path) -> tuple[list, list[Delivery]]:
+    """A clock tick, three camera frames and a corrupt one, as the recorder's subscription
+    hands them over."""
     frames = [m for m in open_recording(recording).messages() if m.topic == "/trisect/points"]
-    route = len(isolated_bus.subscriptions) - 1  # the recorder's "**" subscription
+    route = len(bus.subscriptions) - 1  # the recorder's "**" subscription
     clock = Clock(header=Header(stamp_ns=frames[0].log_time_ns))
     deliveries = [Delivery("wavegrasp/clock", clock.model_dump_json().encode(), f"{JSON};Clock",
                            None, 0, route)]
@@ -70,6 +69,14 @@ def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
         att = CdrAttachment(seq, 0, bytes(16), m.log_time_ns).encode()
         deliveries.append(Delivery("trisect/points", m.cdr, f"{CDR};{m.msgtype}", att, 0, route))
     deliveries.append(Delivery("trisect/points", b"\x00\x01\x00\x00junk", CDR, None, 0, route))
+    return frames, deliveries
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
+                                           tmp_path: Path) -> None:
+    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path), bus=isolated_bus)
+    frames, deliveries = recorder_deliveries(isolated_bus, recording)
     assert [isolated_bus.dispatch(d) for d in deliveries] == [True] * 4 + [False]
     assert rec.frames == 3 and isolated_bus.bad["trisect/points"] == 1
     rec.on_stop()
@@ -80,3 +87,30 @@ def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
     assert [p[2] for p in points] == [m.cdr for m in frames[:3]]
     assert [p[1] for p in points] == [m.log_time_ns for m in frames[:3]]
     assert ("wavegrasp/clock", frames[0].log_time_ns, deliveries[0].payload) in got
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
+        isolated_bus: Bus, recording: Path, tmp_path: Path) -> None:
+    settings = RecorderSettings.from_env(
+        "recorder", {"WAVEGRASP_RECORD_EXCLUDE": "trisect/*"}, out=tmp_path)
+    rec = Recorder(settings, bus=isolated_bus)
+    frames, deliveries = recorder_deliveries(isolated_bus, recording)
+    for d in deliveries:
+        isolated_bus.dispatch(d)
+    assert rec.frames == 3
+    acks = []  # the recorder's own acknowledgements come back through its "**" subscription
+    while len(acks) < 3:
+        d = isolated_bus.inbox.get(timeout=5.0)
+        if d.key == "wavegrasp/recorder/ack":
+            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
+    assert acks == [0, 1, 2]
+    rec.on_stop()
+    with rec.path.open("rb") as f:
+        topics = {c.topic for _, c, _ in make_reader(f).iter_messages(log_time_order=False)}
+    assert topics == {"wavegrasp/clock"}
+
+
+def test_recorder_rejects_a_bad_exclude_expression(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="WAVEGRASP_RECORD_EXCLUDE"):
+        RecorderSettings.from_env("recorder", {"WAVEGRASP_RECORD_EXCLUDE": "a//b"}, out=tmp_path)

@@ -6,6 +6,9 @@ JSON Schema. log_time is on the recording's clock (the CDR attachment's log time
 latest ``wavegrasp/clock``), so the run lines up with its input. The file is flushed every
 ``flush_period_s``: a killed recorder loses at most that much. After each camera frame is
 written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's lockstep).
+Keys matching ``record_exclude`` (``WAVEGRASP_RECORD_EXCLUDE``, comma-separated key
+expressions) are not written: ``trisect/points`` when the input recording already holds the
+clouds (``wavegrasp eval`` does this; camera frames are still acknowledged).
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import zenoh
 from mcap.writer import CompressionType, Writer
+from pydantic import Field, field_validator
 
 from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
@@ -42,6 +47,18 @@ POINTS_KEY = "trisect/points"
 class RecorderSettings(Settings):
     out: Path = Path("out")
     flush_period_s: float = 0.5
+    record_exclude: list[str] = Field(default_factory=list,
+                                      description="key expressions not to write")
+
+    @field_validator("record_exclude")
+    @classmethod
+    def check_key_expressions(cls, exprs: list[str]) -> list[str]:
+        for expr in exprs:
+            try:
+                zenoh.KeyExpr(expr)
+            except Exception as exc:  # zenoh raises its own error type
+                raise ValueError(f"{expr!r} is not a key expression: {exc}") from None
+        return exprs
 
 
 def free_run_path(out: Path) -> Path:
@@ -69,6 +86,8 @@ class Recorder(Service):
         self._wrote_metadata = False
         self.frames = 0
         self.written = 0
+        self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
+        self._skip: dict[str, bool] = {}  # per key: excluded?
         self.bus.subscribe("**", self.on_message)
         log.info("recording to %s", self.path)
 
@@ -98,21 +117,33 @@ class Recorder(Service):
             raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
         try:
             att = CdrAttachment.decode(d.attachment)
-            self._typestore.deserialize_cdr(d.payload, msgtype)
-            msgdef = ros2_msgdef(msgtype)
+            if not self.skips(d.key):
+                self._typestore.deserialize_cdr(d.payload, msgtype)
+                msgdef = ros2_msgdef(msgtype)
         except Exception as exc:  # rosbags raises many types on garbage
             raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
-        channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
-        self.writer.add_message(channel, log_time, d.payload, log_time,
-                                sequence=(att.seq if att else 0) & 0xFFFFFFFF)
-        self.written += 1
+        if not self.skips(d.key):
+            channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
+            self.writer.add_message(channel, log_time, d.payload, log_time,
+                                    sequence=(att.seq if att else 0) & 0xFFFFFFFF)
+            self.written += 1
         if d.key == POINTS_KEY and att is not None:
             self.frames += 1
             self._flush_if_due()
             self.ack_frame(Header(seq=att.seq, stamp_ns=log_time), d.recv_ns, att.seq)
 
+    def skips(self, key: str) -> bool:
+        """Whether ``key`` matches ``record_exclude``."""
+        skip = self._skip.get(key)
+        if skip is None:
+            skip = self._skip[key] = any(e.includes(key) for e in self.excluded)
+        return skip
+
     def _record_json(self, d: Delivery) -> None:
+        if self.skips(d.key):
+            return
+
         model = MESSAGE_TYPES.get(d.schema or "") or model_for_key(d.key)
         if model is None:
             raise BadMessage(f"{d.key}: no message type known for this key "
