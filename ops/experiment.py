@@ -5,8 +5,8 @@ process, over zenoh) runs ``--trials`` trials one after the other on a long wave
 recording: each trial starts where the previous one ended, with the arm back at standby, and
 ends at a success or after ``--attempts`` attempts (or when no plan is approved for 5 s).
 Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. Each run's
-``run.mcap`` holds everything but the camera clouds, which are in the cached recording. ``--jobs`` runs go
-side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
+``run.mcap`` holds everything but the camera clouds, which are in the cached recording.
+``--jobs`` runs go side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
 """
 
 from __future__ import annotations

@@ -14,11 +14,10 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.perception.mesh import (
     MeshAccumulator,
     build_mesh,
-    decode_mesh,
-    encode_mesh,
     mesh_volume,
     write_obj,
 )
+from wavegrasp.schemas.mesh_codec import decode_mesh, encode_mesh
 
 CAMERA = np.array([-1.0, 0.0, 0.3])  # metres, world; the object swings around the origin
 SHAPES = {  # name: (radius m, length m or None for a sphere)

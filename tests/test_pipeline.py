@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from wavegrasp.perception.mesh import decode_mesh, mesh_volume
+from wavegrasp.perception.mesh import mesh_volume
 from wavegrasp.planner.evaluate import approved_grasp_errors
+from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.record import RecordConfig, generate
 

@@ -49,9 +49,18 @@ def plan_for(arm: ArmModel, T_world_base: np.ndarray, offset=(0.0, 0.0, 0.0)
     return plan, path
 
 
+def cylinder_vertices(radius: float, length: float, sides: int = 24) -> np.ndarray:
+    """A closed cylinder's hull vertices (2 * sides, 3) around the origin, along z."""
+    a = np.linspace(0.0, 2 * np.pi, sides, endpoint=False)
+    ring = np.column_stack([radius * np.cos(a), radius * np.sin(a), np.zeros(sides)])
+    return np.vstack([ring - (0, 0, length / 2), ring + (0, 0, length / 2)])
+
+
 def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, PredictedPath],
-            late_s: float = 0.0, truth: Callable[[float], np.ndarray] = swing) -> Result:
-    """Run the plan (approved at NOW) against the ``truth``."""
+            late_s: float = 0.0, truth: Callable[[float], np.ndarray] = swing,
+            mesh: np.ndarray | None = None) -> Result:
+    """Run the plan (approved at NOW) against the ``truth``, the can on its tether (and made
+    ``mesh`` once placed, as the service does when perception's mesh arrives)."""
     plan, path = planned
     attempt = Attempt("p", plan.times + late_s, plan.q, plan.qd, plan.t_grasp + late_s,
                       plan.grasp_T_world[:3, 3], plan.t_final + late_s, plan.jaw_preshape_m,
@@ -59,6 +68,9 @@ def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, Predic
     world = SimWorld(arm, T_world_base, CAN)
     try:
         world.place_object(truth(NOW), UPRIGHT)
+        assert world.add_tether()
+        if mesh is not None:
+            world.use_mesh(mesh)
         world.step_to(NOW)
         executor = Executor(world)
         executor.start(attempt)
@@ -77,6 +89,38 @@ def test_a_plan_that_ends_on_the_object_grasps_it(arm, T_world_base) -> None:
     assert result.success and result.failure is None, result
     assert result.evidence["fingers_touching"] == 2
     assert result.evidence["jaw_opening_m"] == pytest.approx(2 * CAN.radius_m, abs=0.004)
+
+
+def test_the_mesh_replaces_the_fitted_shape_and_is_grasped(arm, T_world_base) -> None:
+    import pybullet as pb
+
+    # A hull 2 mm wider than the fitted cylinder: the jaw must close on the mesh.
+    mesh = cylinder_vertices(CAN.radius_m + 0.002, CAN.length_m)
+    result = execute(arm, T_world_base, plan_for(arm, T_world_base), mesh=mesh)
+    assert result.success, result
+    assert result.evidence["jaw_opening_m"] == pytest.approx(2 * CAN.radius_m + 0.004,
+                                                             abs=0.004)
+    world = SimWorld(arm, T_world_base, CAN)
+    try:
+        world.place_object(swing(NOW), UPRIGHT)
+        world.use_mesh(mesh)
+        assert pb.getCollisionShapeData(world.object, -1, physicsClientId=world.client)[0][2] \
+            == pb.GEOM_MESH
+        assert np.allclose(world.object_position(), swing(NOW))
+        with pytest.raises(ValueError, match="mesh vertices"):
+            world.use_mesh(mesh[:3])
+    finally:
+        world.close()
+
+
+def test_an_arm_that_touches_the_tether_fails_as_collision(arm, T_world_base) -> None:
+    planned = plan_for(arm, T_world_base)
+    in_the_way = planned[0].tool[len(planned[0].tool) // 2]  # where the arm passes
+    # The can waits 30 cm above that point: its tether is in the way first.
+    above = in_the_way + (0.0, 0.0, 0.30 + CAN.length_m / 2)
+    result = execute(arm, T_world_base, planned, truth=lambda t: above)
+    assert not result.success and result.failure == "collision", result
+    assert result.evidence["link"].endswith("on the tether"), result.evidence
 
 
 def test_a_plan_5_cm_off_fails_as_prediction_error(arm, T_world_base) -> None:
@@ -152,6 +196,43 @@ def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_
         sim.check_trial_timeout()  # 10 s: trial 2 ends as a failure, and with it the run
         assert sim.trial == 3 and sim.stopping.is_set()
         assert sim.counters["trials ended waiting for a plan"] == 1
+    finally:
+        sim.world.close()
+        bus.close()
+
+
+def test_the_service_reshapes_the_object_only_between_attempts(arm, T_world_base) -> None:
+    import pybullet as pb
+
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.schemas import ObjectMesh
+    from wavegrasp.schemas.mesh_codec import encode_mesh
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim"), bus=bus)
+    hull = cylinder_vertices(CAN.radius_m, CAN.length_m)
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])  # the sim takes the hull of the vertices
+    msg = ObjectMesh(header={"seq": 1, "stamp_ns": 1}, shape="cylinder", volume_m3=3e-4,
+                     frames=10, **encode_mesh(hull, triangles))
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.executor = Executor(sim.world)
+        sim.world.place_object(swing(NOW), UPRIGHT)
+        sim.world.time_s = NOW
+        shape = lambda: pb.getCollisionShapeData(sim.world.object, -1,  # noqa: E731
+                                                 physicsClientId=sim.world.client)[0][2]
+        sim.executor.start(Attempt("busy", np.array([NOW, NOW + 1]), np.zeros((2, 7)),
+                                   np.zeros((2, 7)), NOW + 1, swing(NOW + 1), NOW, 0.0, NOW))
+        sim.on_mesh(msg, None)
+        sim.finish_frame(1)
+        assert shape() == pb.GEOM_CYLINDER  # not under the gripper
+        sim.executor.attempt = None
+        sim.finish_frame(2)
+        assert shape() == pb.GEOM_MESH and sim.counters["meshes used"] == 1
+        with pytest.raises(ValueError, match="vertices_b64"):
+            sim.on_mesh(msg.model_copy(update={"vertex_count": 47}), None)
     finally:
         sim.world.close()
         bus.close()

@@ -2,9 +2,11 @@
 
 Publishes one ``wavegrasp/perception/object`` per camera frame: the volume centroid in
 ``world`` with its uncertainty, or no centroid and the reason (empty cloud, unknown frame, no
-object...). Every ``mesh_period_s`` it rebuilds the object's closed mesh from the points of all
-frames so far, on a worker thread off the per-frame path, and publishes it on
-``wavegrasp/perception/mesh``. It never reads the ground truth.
+object...). Every ``mesh_period_s`` of frames it rebuilds the object's closed mesh from the
+points of all frames so far, on a worker thread off the per-frame path, and publishes it on
+``wavegrasp/perception/mesh``; the frames' acknowledgements wait for that mesh, so in a
+lockstep run everyone downstream gets it at the same frame every time. It never reads the
+ground truth.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
-from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, encode_mesh, mesh_volume
+from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
@@ -24,6 +26,7 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import Header, Hop, ObjectMesh, ObjectObservation, Vec3
+from wavegrasp.schemas.mesh_codec import encode_mesh
 
 log = logging.getLogger("wavegrasp.perception")
 OBJECT_KEY = "wavegrasp/perception/object"
@@ -57,6 +60,7 @@ class PerceptionService(Service):
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
         self._waiting: Delivery | None = None  # a frame whose transform has not come yet
+        self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
         self.bus.subscribe("tf_static", self.on_tf)
         self.bus.subscribe("trisect/points", self.on_points)
 
@@ -97,9 +101,18 @@ class PerceptionService(Service):
             except ValueError:
                 att = None  # counted as a bad message already; no frame to acknowledge
             if att is not None and self._waiting is not d:
-                self.ack_frame(Header(seq=att.seq, stamp_ns=att.log_time_ns, frame_id="world",
-                                      trace=[Hop(service="source", recv_ns=att.source_ns,
-                                                 sent_ns=att.source_ns)]), d.recv_ns, att.seq)
+                self.start_mesh_if_due()
+                self._held_acks.append((Header(
+                    seq=att.seq, stamp_ns=att.log_time_ns, frame_id="world",
+                    trace=[Hop(service="source", recv_ns=att.source_ns,
+                               sent_ns=att.source_ns)]), d.recv_ns, att.seq))
+                if self._mesh_job is None:
+                    self.release_acks()
+
+    def release_acks(self) -> None:
+        for header, recv_ns, seq in self._held_acks:
+            self.ack_frame(header, recv_ns, seq)
+        self._held_acks.clear()
 
     def process_frame(self, d: Delivery, wait_for_tf: bool = False) -> bool:
         """Process a frame; True if it has to wait for its camera transform."""
@@ -146,17 +159,27 @@ class PerceptionService(Service):
             shape=fit.shape, axis=Vec3(x=fit.axis[0], y=fit.axis[1], z=fit.axis[2]),
             radius_m=fit.radius, length_m=fit.length, fit_rms_m=fit.rms))
 
+    def start_mesh_if_due(self) -> None:
+        """Rebuild the mesh on the worker after every ``mesh_period_s`` of frames (from the
+        frame count, not the wall clock, so a lockstep run builds the same meshes)."""
+        if self._mesh_job is not None or self.accumulator.frames < self._next_mesh_frame:
+            return
+        self._next_mesh_frame = self.accumulator.frames + int(10 * self.cfg.mesh_period_s)
+        acc = self.accumulator
+        points, weights, frames = acc.points_object(), acc.counts(), acc.frames
+        self._mesh_job = self._executor.submit(
+            lambda: (*build_mesh(points, weights=weights), frames))
+
     def on_tick(self) -> None:
         job = self._mesh_job
         if job is not None and job.done():
             self._mesh_job = None
-            self.publish_mesh(*job.result())
-        if job is None and self.accumulator.frames >= self._next_mesh_frame:
-            self._next_mesh_frame = self.accumulator.frames + int(10 * self.cfg.mesh_period_s)
-            acc = self.accumulator
-            points, weights, frames = acc.points_object(), acc.counts(), acc.frames
-            self._mesh_job = self._executor.submit(
-                lambda: (*build_mesh(points, weights=weights), frames))
+            try:
+                self.publish_mesh(*job.result())
+            except ValueError as exc:  # too few or degenerate points: the next one may do
+                self.counters["mesh failed"] += 1
+                log.warning("mesh from %d frames failed: %s", self.accumulator.frames, exc)
+            self.release_acks()
 
     def publish_mesh(self, vertices: np.ndarray, triangles: np.ndarray, frames: int) -> None:
         prior = self.perception.prior

@@ -9,7 +9,7 @@ Rules (the README lists them too):
      approved (within ``abrupt_m`` / 2 of the object), then, before the grasp time, the
      object strayed more than ``abrupt_m`` from it (whatever went wrong next, it caused);
   2. **collision**: before the jaw closed, an arm link other than the fingers touched the
-     object, or a finger did before the final move began;
+     object, or a finger did before the final move began, or any link touched the tether;
   3. **unreachable**: at the grasp time the tool was more than ``reach_tol_m`` from the
      planned grasp point (the arm could not follow its trajectory);
   4. **timing**: the object was not at the grasp point at the grasp time, but it passed
@@ -119,6 +119,7 @@ class Executor:
         self._truth, self._touched = [], {}
         self._tool_at_grasp, self._closing, self._preshaped = None, False, False
         self.world.set_jaw(self.world.arm.jaw_max_opening_m)
+        self.world.tether_touches()  # those on the way back from the last attempt are not its
 
     def advance(self, t_s: float, position: np.ndarray, quat_xyzw: np.ndarray) -> Result | None:
         """Drive the object to its pose at ``t_s``, the arm along its plan, step the world to
@@ -142,6 +143,9 @@ class Executor:
                 if name in self._finger_names and w.time_s >= a.final_from:
                     continue  # the object entering the jaw in the final move
                 self._touched.setdefault(name, a.t_grasp - w.time_s)
+            for link in w.tether_touches():
+                self._touched.setdefault(f"{self._names[link]} on the tether",
+                                         a.t_grasp - w.time_s)
         if not self._preshaped and a.jaw_preshape_m > 0 and w.time_s >= a.final_from:
             w.set_jaw(a.jaw_preshape_m)
             self._preshaped = True

@@ -1,12 +1,13 @@
 """``wavegrasp sim``: PyBullet executes approved plans on the recording's clock.
 
 The arm (ours, or ``WAVEGRASP_ARM_URDF``) stands on its mount from ``tf_static``; the object,
-a sphere or an upright cylinder of the size perception reports, follows
-``groundtruth/object`` (or, in a recording without ground truth, the tracked centroid)
-through a bounded-force drive. A ``go`` from the gate starts the plan; the jaw closes at the
-grasp time; the grasp is judged physically (:mod:`wavegrasp.sim.executor`) and published on
-``wavegrasp/sim/outcome`` with the next camera frame's acknowledgement; the arm returns to
-standby and the pipeline tries again, up to ``attempts`` per trial.
+a sphere or a cylinder of the size perception reports until perception's mesh arrives
+(applied between attempts), on its tether to the seabed, follows ``groundtruth/object`` (or,
+in a recording without ground truth, the tracked centroid) through a bounded-force drive.
+A ``go`` from the gate starts the plan; the jaw closes at the grasp time; the grasp is
+judged physically (:mod:`wavegrasp.sim.executor`) and published on ``wavegrasp/sim/outcome``
+with the next camera frame's acknowledgement; the arm returns to standby and the pipeline
+tries again, up to ``attempts`` per trial.
 ``wavegrasp/sim/arm_state`` is published once a camera frame.
 """
 
@@ -32,8 +33,10 @@ from wavegrasp.schemas import (
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
+    ObjectMesh,
     ObjectObservation,
 )
+from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
 
@@ -53,6 +56,8 @@ class SimSettings(Settings):
                                    "this long (recording seconds) after it began or after "
                                    "its last attempt ends as a failure")
     drive_force_n: float = 5.0
+    tether: bool = Field(True, description="a tether from the object's lower end to the "
+                         "seabed, which the arm must not touch")
     stop_after_trials: bool = Field(False, description="exit once the last trial has ended "
                                     "(compose labels the sim as ending the run)")
 
@@ -77,9 +82,11 @@ class SimService(Service):
         self._executing: str | None = None
         self._pose: tuple[float, np.ndarray, np.ndarray] | None = None  # the newest, to build
         self._results: list[Result] = []
+        self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("groundtruth/object", self.on_truth)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
+        self.bus.subscribe("wavegrasp/perception/mesh", self.on_mesh, ObjectMesh)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
                            MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
@@ -102,6 +109,13 @@ class SimService(Service):
                 [msg.axis.x, msg.axis.y, msg.axis.z])
             quat = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0].as_quat()
             self.advance(t, np.array([c.x, c.y, c.z]), quat)
+
+    def on_mesh(self, msg: ObjectMesh, _d: Delivery) -> None:
+        """Kept until the arm is idle: the object is not reshaped under the gripper."""
+        vertices, _triangles = decode_mesh(msg.model_dump())
+        if len(vertices) < 4:
+            raise ValueError(f"mesh of {len(vertices)} vertices: a closed mesh needs 4")
+        self._mesh = vertices
 
     def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
         """Kept a while: an attempt is judged against the prediction its plan came from."""
@@ -167,6 +181,8 @@ class SimService(Service):
                               gui=self.cfg.gui)
         self.world.place_object(position, quat)
         self.world.time_s = t_s
+        if self.cfg.tether and not self.world.add_tether():
+            log.warning("no tether: the object's lower end does not point down to the seabed")
         self.executor = Executor(self.world)
         return True
 
@@ -214,6 +230,10 @@ class SimService(Service):
         self._results.clear()
         if self.executor is not None:
             self.check_trial_timeout()
+            if self._mesh is not None and not self.executor.busy:
+                self.world.use_mesh(self._mesh)
+                self._mesh = None
+                self.counters["meshes used"] += 1
         q, qd = self.world.arm_q()
         self.bus.publish(ARM_STATE_KEY, ArmState(
             header=new_header(self.name, frame_seq, int(round(self.world.time_s * 1e9))),

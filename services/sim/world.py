@@ -6,6 +6,12 @@ tests drive it alike). Frame ``world`` (the tank, z up), metres, seconds on the 
 Gravity is off: underwater, the arm's buoyancy and its controllers hold it, and the object is
 carried along its recorded path by a constraint whose force is bounded (``drive_force_n``), so
 a gripper that hits it pushes it aside as the water would let it.
+
+The object starts as the sphere or cylinder perception fitted and becomes perception's mesh
+(its convex hull) once one arrives. Its tether runs straight from its lower end (along its
+−z) to an anchor on the seabed, fixed where that line met the seabed when the scene was
+built; the tether is a thin line that pushes nothing, but an arm link touching it is
+recorded (:meth:`SimWorld.tether_touches`).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.arm import ArmModel
 
 STEP_S = 1.0 / 240.0
+TETHER_RADIUS_M = 0.003
 
 
 @dataclass(frozen=True)
@@ -29,6 +36,11 @@ class ObjectShape:
     radius_m: float
     length_m: float
     mass_kg: float = 0.15
+
+    @property
+    def tether_offset_m(self) -> float:
+        """From the centroid to the tether's attachment, along the object's −z."""
+        return self.radius_m if self.shape == "sphere" else self.length_m / 2
 
 
 class SimWorld:
@@ -68,16 +80,83 @@ class SimWorld:
         else:
             shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=obj.radius_m,
                                             height=obj.length_m, physicsClientId=c)
-        self.object = pb.createMultiBody(obj.mass_kg, shape, basePosition=[0.0, 0.0, 0.5],
-                                         physicsClientId=c)
-        pb.changeDynamics(self.object, -1, lateralFriction=0.8, linearDamping=0.0,
-                          angularDamping=0.0, physicsClientId=c)
+        self.obj = obj
+        self.object = self._add_object(shape, [0.0, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0])
         for link in self.finger_links:
             pb.changeDynamics(self.robot, link, lateralFriction=0.9, physicsClientId=c)
-        self._drive = pb.createConstraint(self.object, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0],
-                                          [0, 0, 0], [0.0, 0.0, 0.5], physicsClientId=c)
+        self.tether: int | None = None
+        self.anchor: np.ndarray | None = None
+        self._tether_length = 0.0
+        self._tether_touched: set[int] = set()
         self.set_arm(arm.q_home)
         self.set_jaw(arm.jaw_max_opening_m)
+
+    def _add_object(self, shape: int, position: list[float], quat: list[float]) -> int:
+        c = self.client
+        body = pb.createMultiBody(self.obj.mass_kg, shape, basePosition=position,
+                                  baseOrientation=quat, physicsClientId=c)
+        pb.changeDynamics(body, -1, lateralFriction=0.8, linearDamping=0.0,
+                          angularDamping=0.0, physicsClientId=c)
+        self._drive = pb.createConstraint(body, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0],
+                                          [0, 0, 0], position, physicsClientId=c)
+        pb.changeConstraint(self._drive, position, jointChildFrameOrientation=quat,
+                            maxForce=self.drive_force_n, physicsClientId=c)
+        return int(body)
+
+    def use_mesh(self, vertices: np.ndarray) -> None:
+        """Make the object perception's mesh (its convex hull), where the object is now.
+
+        vertices : array, shape (v, 3), metres, frame object (origin at the centroid).
+        """
+        v = np.asarray(vertices, dtype=float)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or not np.all(np.isfinite(v)):
+            raise ValueError(f"mesh vertices must be finite with shape (v >= 4, 3), got {v.shape}")
+        c = self.client
+        position, quat = pb.getBasePositionAndOrientation(self.object, physicsClientId=c)
+        linear, angular = pb.getBaseVelocity(self.object, physicsClientId=c)
+        target = pb.getConstraintInfo(self._drive, physicsClientId=c)
+        pb.removeConstraint(self._drive, physicsClientId=c)
+        pb.removeBody(self.object, physicsClientId=c)
+        shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=v.tolist(), physicsClientId=c)
+        self.object = self._add_object(shape, list(position), list(quat))
+        pb.resetBaseVelocity(self.object, linear, angular, physicsClientId=c)
+        # Keep pulling towards where the water carries it, not where it happens to be.
+        pb.changeConstraint(self._drive, list(target[7]), jointChildFrameOrientation=list(
+            target[9]), maxForce=self.drive_force_n, physicsClientId=c)
+
+    def add_tether(self) -> bool:
+        """Anchor a tether where the line down the object's −z from its attachment meets the
+        seabed (z = 0); False if that line does not reach the seabed."""
+        attach, down = self._attachment()
+        if down[2] > -0.2 or attach[2] <= 0.0:
+            return False
+        self.anchor = attach + down * (attach[2] / -down[2])
+        self._tether_length = float(np.linalg.norm(self.anchor - attach))
+        shape = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=TETHER_RADIUS_M,
+                                        height=self._tether_length, physicsClientId=self.client)
+        self.tether = int(pb.createMultiBody(0.0, shape, physicsClientId=self.client))
+        # A string pushes nothing: no contacts; touches are found by distance queries.
+        pb.setCollisionFilterGroupMask(self.tether, -1, 0, 0, physicsClientId=self.client)
+        self._place_tether()
+        return True
+
+    def _attachment(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tether's attachment point and the object's −z, world."""
+        position, quat = pb.getBasePositionAndOrientation(self.object,
+                                                          physicsClientId=self.client)
+        down = -Rotation.from_quat(quat).as_matrix()[:, 2]
+        return np.array(position) + self.obj.tether_offset_m * down, down
+
+    def _place_tether(self) -> None:
+        """The tether from its anchor towards the attachment (straight; taut or not)."""
+        assert self.tether is not None and self.anchor is not None
+        attach, _ = self._attachment()
+        up = attach - self.anchor
+        up /= max(float(np.linalg.norm(up)), 1e-9)
+        quat = Rotation.align_vectors([up], [[0.0, 0.0, 1.0]])[0].as_quat()
+        centre = self.anchor + up * self._tether_length / 2
+        pb.resetBasePositionAndOrientation(self.tether, centre.tolist(), quat.tolist(),
+                                           physicsClientId=self.client)
 
     # --- commands -----------------------------------------------------------------------
 
@@ -119,6 +198,10 @@ class SimWorld:
         while self.time_s + STEP_S <= t_s + 1e-12:
             pb.stepSimulation(physicsClientId=self.client)
             self.time_s += STEP_S
+            if self.tether is not None:
+                self._place_tether()
+                self._tether_touched.update(p[3] for p in pb.getClosestPoints(
+                    self.robot, self.tether, 0.0, physicsClientId=self.client))
 
     # --- state --------------------------------------------------------------------------
 
@@ -144,6 +227,11 @@ class SimWorld:
         """The arm's links (PyBullet indices) touching the object now."""
         return {c[3] for c in pb.getContactPoints(self.robot, self.object,
                                                   physicsClientId=self.client)}
+
+    def tether_touches(self) -> set[int]:
+        """The arm's links (PyBullet indices) that touched the tether since the last call."""
+        touched, self._tether_touched = self._tether_touched, set()
+        return touched
 
     def close(self) -> None:
         if pb.isConnected(physicsClientId=self.client):
