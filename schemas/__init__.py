@@ -1,8 +1,9 @@
 """Message contracts shared by every service: pydantic v2 models and the key tables.
 
 ``MESSAGE_TYPES`` maps a schema name (sent as the zenoh encoding's schema) to its model;
-``KEY_TYPES`` maps each fixed key to the model it carries; ``ROS_KEYS`` maps the ROS topics that
-travel as CDR (zenoh-bridge-ros2dds mapping: topic ``/a/b`` on key ``a/b``) to their ROS 2 type.
+``KEY_TYPES`` maps each fixed key to the model it carries; ``ROS_KEYS`` maps the keys that
+travel as CDR (ROS topics by the zenoh-bridge-ros2dds mapping: topic ``/a/b`` on key ``a/b``;
+and perception's object points) to their ROS 2 type.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ ROS_KEYS: dict[str, str] = {
     "trisect/points": "sensor_msgs/msg/PointCloud2",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "groundtruth/object": "geometry_msgs/msg/PoseStamped",
+    "wavegrasp/perception/points": "sensor_msgs/msg/PointCloud2",  # the object's, in world
 }
 
 

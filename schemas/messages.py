@@ -142,6 +142,9 @@ class GraspPlan(Message):
         None, description="the jaw's opening for the final move, a little wider than the object")
     t_close_ns: int | None = Field(
         None, description="when the jaw starts closing, so it meets the object at t_grasp_ns")
+    candidates: list[Pose] = Field(
+        default_factory=list, description="grasp poses checked in full for this plan, in "
+        "order, the chosen one last; world")
 
 
 class GateDecision(Message):

@@ -12,6 +12,8 @@ from mcap.reader import make_reader
 
 from wavegrasp.perception.mesh import mesh_volume
 from wavegrasp.planner.evaluate import approved_grasp_errors
+from wavegrasp.runtime.trace import check_trace
+from wavegrasp.schemas import Hop
 from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.record import RecordConfig, generate
@@ -72,6 +74,56 @@ def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
     assert [h["service"] for h in decisions[-1]["header"]["trace"]][-2:] == ["planner", "gate"]
     errors = approved_grasp_errors(out / "run.mcap")
     assert len(errors) and np.median(errors) <= 0.015
+    check_traces(out / "run.mcap")
+    check_rrd(out / "run.rrd", frames=180)
+    report = subprocess.run(wavegrasp_cmd("latency", str(out / "run.mcap")),
+                            capture_output=True, text=True, timeout=60)
+    assert report.returncode == 0, report.stderr
+    assert "camera frame -> gate decision" in report.stdout
+    assert "180 published, 180 reported by perception, 0 dropped" in report.stdout
+
+
+def check_rrd(path: Path, frames: int) -> None:
+    """run.rrd reads back with the pinned rerun SDK and holds every view's entities."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    assert reader.blueprints(), "no blueprint"
+    rows: dict[str, int] = {}
+    for line in reader.stream().collect().summary().splitlines():
+        entity, rest = line.split(maxsplit=1)
+        rows[entity] = rows.get(entity, 0) + int(rest.split("rows=")[1].split()[0])
+    assert rows["/world/cloud"] == frames
+    assert rows["/world/object/centroid"] >= 0.95 * frames
+    expected = ["/world/object/points", "/world/object/track", "/world/object/truth",
+                "/world/prediction/path", "/world/prediction/sigma", "/world/plan/candidates",
+                "/world/plan/grasp", "/world/plan/path", "/world/arm_mount", "/world/arm_joints",
+                "/gate/mean_error_mm", "/gate/threshold_mm", "/gate/go", "/log/decisions",
+                "/latency/end_to_end", "/latency/source_to_perception", "/latency/planner"]
+    assert not [e for e in expected if not rows.get(e)], rows
+    assert any(e.startswith("/bravo7_like/") for e in rows)  # the arm's URDF
+
+
+def check_traces(run: Path) -> None:
+    """Every message's trace is complete and monotonic; what derives from a camera frame
+    starts at the player's publish time, and a decision holds the whole chain."""
+    types: dict[str, int] = {}
+    with run.open("rb") as f:
+        for _, channel, m in make_reader(f).iter_messages():
+            if channel.message_encoding != "json":
+                continue
+            header = json.loads(m.data).get("header")
+            assert header is not None, channel.topic
+            trace = [Hop(**h) for h in header["trace"]]
+            assert trace, channel.topic
+            check_trace(trace)  # raises naming the hop
+            services = [h.service for h in trace]
+            if channel.topic.endswith(("/ack", "/object", "/prediction", "/plan", "/decision")):
+                assert services[0] == "source", (channel.topic, services)
+            if channel.topic == "wavegrasp/gate/decision":
+                assert services == ["source", "perception", "predictor", "planner", "gate"]
+            types[channel.topic] = types.get(channel.topic, 0) + 1
+    assert len(types) >= 20, types  # clock, status, stats, acks and every service's output
 
 
 def test_lockstep_runs_repeat_exactly(tmp_path: Path) -> None:

@@ -2,8 +2,9 @@
 
 Publishes one ``wavegrasp/perception/object`` per camera frame: the volume centroid in
 ``world`` with its uncertainty, or no centroid and the reason (empty cloud, unknown frame, no
-object...). Every ``mesh_period_s`` of frames it rebuilds the object's closed mesh from the
-points of all frames so far, on a worker thread off the per-frame path, and publishes it on
+object...); with a centroid, also the object's points on ``wavegrasp/perception/points``.
+Every ``mesh_period_s`` of frames it rebuilds the object's closed mesh from the points of all
+frames so far, on a worker thread off the per-frame path, and publishes it on
 ``wavegrasp/perception/mesh``; the frames' acknowledgements wait for that mesh, so in a
 lockstep run everyone downstream gets it at the same frame every time. It never reads the
 ground truth.
@@ -20,7 +21,12 @@ import numpy as np
 
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
-from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_tf
+from wavegrasp.recording_io.ros_msgs import (
+    StaticTransforms,
+    decode_points,
+    decode_tf,
+    encode_points,
+)
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -30,6 +36,8 @@ from wavegrasp.schemas.mesh_codec import encode_mesh
 
 log = logging.getLogger("wavegrasp.perception")
 OBJECT_KEY = "wavegrasp/perception/object"
+#: The points taken as the object's, in ``world`` (a PointCloud2, CDR: what viewers show).
+POINTS_KEY = "wavegrasp/perception/points"
 MESH_KEY = "wavegrasp/perception/mesh"
 
 
@@ -140,6 +148,8 @@ class PerceptionService(Service):
             self.publish_missing(header, result.reason or "no object")
             return False
         self.publish_observation(header, result, len(cloud.points))
+        self.bus.publish_cdr(POINTS_KEY, encode_points(result.points, cloud.stamp_ns, "world"),
+                             "sensor_msgs/msg/PointCloud2", log_time_ns=cloud.stamp_ns)
         if self.perception.prior is not None:
             self.accumulator.add(result.points, result.fit.centre, object_rotation(result.fit.axis))
         return False

@@ -52,13 +52,11 @@ def vec(p: np.ndarray) -> Vec3:
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                service: str) -> GraspPlan:
     ns = lambda t: int(round(t * 1e9))  # noqa: E731
-    q = Rotation.from_matrix(plan.grasp_T_world[:3, :3]).as_quat()
     return GraspPlan(
         header=derived_header(pred.header, service, recv_ns),
         plan_id=f"{pred.header.seq}-{ns(plan.t_grasp)}", t_start_ns=ns(plan.t_start),
         t_grasp_ns=ns(plan.t_grasp),
-        grasp=Pose(position=vec(plan.grasp_T_world[:3, 3]),
-                   orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+        grasp=pose(plan.grasp_T_world),
         approach=vec(plan.approach), joint_names=list(arm.joint_names),
         joint_trajectory=[JointSample(t_ns=ns(t), positions=qi.tolist(), velocities=vi.tolist())
                           for t, qi, vi in zip(plan.times, plan.q, plan.qd, strict=True)],
@@ -66,7 +64,13 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                         for t, p in zip(plan.times, plan.tool, strict=True)],
         confidence=plan.confidence, waypoints=[vec(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
-        t_close_ns=ns(plan.t_close))
+        t_close_ns=ns(plan.t_close), candidates=[pose(T) for T in plan.candidates])
+
+
+def pose(T: np.ndarray) -> Pose:
+    """A (4, 4) transform as a Pose."""
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    return Pose(position=vec(T[:3, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
 
 
 class PlannerService(Service):

@@ -79,6 +79,8 @@ class Plan:
     jaw_preshape_m: float = 0.0
     t_close: float = 0.0
     rejected: Counter = field(default_factory=Counter)
+    #: Grasp poses (4, 4), world, that reached the full check, in order: this one's last.
+    candidates: list[np.ndarray] = field(default_factory=list)
 
 
 def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.ndarray,
@@ -100,6 +102,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     earliest = start + max(cfg.min_lead_s, reach_time + cfg.approach_s)
     shoulder = T_world_base[:3, :3] @ arm.shoulder + base_world
     need, tried = 0.0, 0
+    candidates: list[np.ndarray] = []
     for t_g in grasp_times(path, earliest, cfg.grasp_time):
         if t_g < start + need:
             continue
@@ -125,10 +128,11 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             tried_here += 1
             tried += tried_here == 1
             n = offset_direction(d, R[:, 2], towards)
+            candidates.append(T_grasp)
             result = _candidate(path, now, t_g, T_grasp, n, d, arm, T_world_base, q_now, body,
                                 cfg)
             if isinstance(result, Plan):
-                result.rejected = rejected
+                result.rejected, result.candidates = rejected, candidates
                 return result
             reason, needed = result
             rejected[reason] += 1

@@ -1,4 +1,5 @@
-"""``wavegrasp recorder``: subscribes to everything and writes ``OUT/run.mcap``.
+"""``wavegrasp recorder``: subscribes to everything and writes ``OUT/run.mcap`` and
+``OUT/run.rrd``.
 
 CDR keys become ROS 2 channels (topic ``/a/b`` for key ``a/b``, ``ros2msg`` schema), so a run is
 itself a recording the player can replay; JSON keys become ``json`` channels with the model's
@@ -9,11 +10,14 @@ written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's
 Keys matching ``record_exclude`` (``WAVEGRASP_RECORD_EXCLUDE``, comma-separated key
 expressions) are not written: ``trisect/points`` when the input recording already holds the
 clouds (``wavegrasp eval`` does this; camera frames are still acknowledged).
+``run.rrd`` is the same run for the rerun viewer (:mod:`wavegrasp.recorder.rerun_log`);
+with ``viewer_port`` the recorder also serves it live to viewers over gRPC.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -23,8 +27,16 @@ from pathlib import Path
 
 import zenoh
 from mcap.writer import CompressionType, Writer
-from pydantic import Field, field_validator
+from pydantic import BaseModel, Field, field_validator
 
+from wavegrasp.arm import ArmModel
+from wavegrasp.recorder.rerun_log import RerunLog
+from wavegrasp.recording_io.ros_msgs import (
+    StaticTransforms,
+    decode_points,
+    decode_pose,
+    decode_tf,
+)
 from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
@@ -33,8 +45,15 @@ from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import (
     MESSAGE_TYPES,
     ROS_KEYS,
+    ArmState,
     Clock,
+    GateDecision,
+    GraspOutcome,
+    GraspPlan,
     Header,
+    Hop,
+    MotionPrediction,
+    ObjectObservation,
     PlayerStatus,
     model_for_key,
 )
@@ -42,6 +61,8 @@ from wavegrasp.schemas.export import schema_text
 
 log = logging.getLogger("wavegrasp.recorder")
 POINTS_KEY = "trisect/points"
+OBJECT_POINTS_KEY = "wavegrasp/perception/points"
+TRUTH_KEY = "groundtruth/object"
 
 
 class RecorderSettings(Settings):
@@ -49,6 +70,11 @@ class RecorderSettings(Settings):
     flush_period_s: float = 0.5
     record_exclude: list[str] = Field(default_factory=list,
                                       description="key expressions not to write")
+    rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
+    viewer_port: int | None = Field(None, description="also serve the run live to rerun "
+                                    "viewers on this gRPC port")
+    viewer_bind: str = Field("127.0.0.1", description="the address viewers connect to")
+    arm_urdf: str | None = None
 
     @field_validator("record_exclude")
     @classmethod
@@ -88,8 +114,17 @@ class Recorder(Service):
         self.written = 0
         self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
         self._skip: dict[str, bool] = {}  # per key: excluded?
+        self.rerun: RerunLog | None = None
+        if settings.rrd or settings.viewer_port is not None:
+            self.arm = ArmModel.load(settings.arm_urdf or None)
+            self.rerun = RerunLog(self.path.with_suffix(".rrd") if settings.rrd else None,
+                                  self.arm.urdf_path, settings.viewer_port, settings.viewer_bind)
+        self.tf = StaticTransforms()
+        self._to_rerun = {ObjectObservation: "observation", MotionPrediction: "prediction",
+                          GraspPlan: "plan", GateDecision: "decision", ArmState: "arm_state",
+                          GraspOutcome: "outcome"}
         self.bus.subscribe("**", self.on_message)
-        log.info("recording to %s", self.path)
+        log.info("recording to %s%s", self.path, " and run.rrd" if settings.rrd else "")
 
     def _channel(self, topic: str, encoding: str, schema_name: str, schema_encoding: str,
                  schema_data: Callable[[], str]) -> int:
@@ -106,10 +141,39 @@ class Recorder(Service):
 
     def on_message(self, d: Delivery) -> None:
         kind = d.encoding.split(";")[0]
+        msg = None
         if kind == CDR or (d.key in ROS_KEYS and kind != JSON):
             self._record_cdr(d)
         else:
-            self._record_json(d)
+            msg = self._record_json(d)
+        if self.rerun is not None and not self.skips(d.key):
+            try:
+                self.log_to_rerun(d, msg)
+            except Exception as exc:  # the MCAP has it; the view goes without it
+                self.counters[f"not in run.rrd: {type(exc).__name__}"] += 1
+                log.debug("%s: not in run.rrd: %s", d.key, exc)
+
+    def log_to_rerun(self, d: Delivery, msg: BaseModel | None) -> None:
+        r = self.rerun
+        assert r is not None
+        if msg is not None:
+            method = self._to_rerun.get(type(msg))
+            if method is not None:
+                getattr(r, method)(msg)
+        elif d.key == "tf_static":
+            self.tf.update(decode_tf(d.payload))
+            with contextlib.suppress(ValueError):  # the arm's mount may come in a later one
+                r.mount(self.tf.lookup("world", self.arm.base_link))
+        elif d.key == POINTS_KEY:
+            cloud = decode_points(d.payload)
+            T = self.tf.lookup("world", cloud.frame_id)
+            r.cloud(cloud.stamp_ns, cloud.points @ T[:3, :3].T + T[:3, 3])
+        elif d.key == OBJECT_POINTS_KEY:
+            cloud = decode_points(d.payload)
+            r.object_points(cloud.stamp_ns, cloud.points)
+        elif d.key == TRUTH_KEY:
+            T, _frame, stamp_ns = decode_pose(d.payload)
+            r.truth(stamp_ns, T[:3, 3])
 
     def _record_cdr(self, d: Delivery) -> None:
         msgtype = d.schema or ROS_KEYS.get(d.key)
@@ -131,7 +195,9 @@ class Recorder(Service):
         if d.key == POINTS_KEY and att is not None:
             self.frames += 1
             self._flush_if_due()
-            self.ack_frame(Header(seq=att.seq, stamp_ns=log_time), d.recv_ns, att.seq)
+            self.ack_frame(Header(seq=att.seq, stamp_ns=log_time, trace=[Hop(
+                service="source", recv_ns=att.source_ns, sent_ns=att.source_ns)]),
+                d.recv_ns, att.seq)
 
     def skips(self, key: str) -> bool:
         """Whether ``key`` matches ``record_exclude``."""
@@ -140,9 +206,9 @@ class Recorder(Service):
             skip = self._skip[key] = any(e.includes(key) for e in self.excluded)
         return skip
 
-    def _record_json(self, d: Delivery) -> None:
+    def _record_json(self, d: Delivery) -> BaseModel | None:
         if self.skips(d.key):
-            return
+            return None
 
         model = MESSAGE_TYPES.get(d.schema or "") or model_for_key(d.key)
         if model is None:
@@ -160,6 +226,7 @@ class Recorder(Service):
                                 lambda: schema_text(model.__name__))
         self.writer.add_message(channel, log_time, d.payload, publish_time)
         self.written += 1
+        return msg
 
     def _flush_if_due(self) -> None:
         if time.monotonic() - self._last_flush >= self.flush_period_s:
@@ -176,6 +243,8 @@ class Recorder(Service):
             "bad": json.dumps(dict(self.bus.bad))})
         self.writer.finish()
         self._file.close()
+        if self.rerun is not None:
+            self.rerun.close()
         log.info("wrote %d messages (%d camera frames) to %s", self.written, self.frames,
                  self.path)
 

@@ -1,4 +1,5 @@
-"""ROS messages as numpy: point clouds, static transforms and poses from their CDR bytes.
+"""ROS messages as numpy: point clouds, static transforms and poses from their CDR bytes
+(and point clouds to CDR bytes).
 
 Every decoder raises ValueError naming what is wrong (field, size, frame), never a library's
 own exception, so a service can count the message as bad and go on.
@@ -12,6 +13,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.recording_io.typestore import ros2_typestore
+from wavegrasp.recording_io.writer import _header, check_points, check_stamp
 
 FLOAT32, FLOAT64 = 7, 8  # sensor_msgs/PointField datatypes
 
@@ -62,6 +64,22 @@ def decode_points(cdr: bytes) -> Cloud:
     finite = np.isfinite(pts).all(axis=1)
     return Cloud(pts[finite], msg.header.frame_id, stamp_ns(msg.header),
                  int(n - finite.sum()))
+
+
+def encode_points(points: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """A ``sensor_msgs/msg/PointCloud2`` (x, y, z float32, height 1) as CDR bytes.
+
+    points : array, shape (n, 3), metres, frame ``frame_id``; stamp_ns : ns since the epoch.
+    """
+    pts = check_points(points)
+    t = ros2_typestore().types
+    fields = [t["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=FLOAT32, count=1)
+              for i, n in enumerate("xyz")]
+    msg = t["sensor_msgs/msg/PointCloud2"](
+        header=_header(check_stamp(stamp_ns), frame_id), height=1, width=len(pts),
+        fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(pts),
+        data=pts.view(np.uint8).reshape(-1), is_dense=bool(np.isfinite(pts).all()))
+    return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
 
 
 def transform_matrix(translation, rotation) -> np.ndarray:

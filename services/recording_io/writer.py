@@ -147,18 +147,10 @@ class RecordingWriter:
             Capture time, nanoseconds since the epoch.
         points : array, shape (n, 3), metres, frame `frame_id` (trisect_optical: z fwd, y down)
         """
-        pts = check_points(points)
-        t = ros2_typestore().types
-        fields = [
-            t["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=FLOAT32, count=1)
-            for i, n in enumerate("xyz")
-        ]
-        msg = t["sensor_msgs/msg/PointCloud2"](
-            header=_header(check_stamp(stamp_ns), frame_id), height=1, width=len(pts),
-            fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(pts),
-            data=pts.view(np.uint8).reshape(-1), is_dense=bool(np.isfinite(pts).all()),
-        )
-        self._write("/trisect/points", "sensor_msgs/msg/PointCloud2", stamp_ns, msg)
+        from .ros_msgs import encode_points  # it builds on this module's checks
+
+        self.write_cdr("/trisect/points", "sensor_msgs/msg/PointCloud2", stamp_ns,
+                       encode_points(points, stamp_ns, frame_id))
 
     def write_tf_static(
         self,

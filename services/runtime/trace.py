@@ -74,3 +74,27 @@ def stamp_sent(header: Header, service: str) -> None:
     """Set this service's hop ``sent_ns`` to now, if the last hop is ours and unsent."""
     if header.trace and header.trace[-1].service == service and header.trace[-1].sent_ns == 0:
         header.trace[-1].sent_ns = time.time_ns()
+
+
+def check_trace(trace: list[Hop]) -> None:
+    """Raise ValueError naming the first hop whose times are missing or run backwards: each
+    hop is received, then sent, and not received before the hop ahead of it was sent."""
+    for k, hop in enumerate(trace):
+        if hop.recv_ns <= 0 or hop.sent_ns < hop.recv_ns:
+            raise ValueError(f"hop {k} ({hop.service}): recv_ns {hop.recv_ns}, "
+                             f"sent_ns {hop.sent_ns}")
+        if k and hop.recv_ns < trace[k - 1].sent_ns:
+            raise ValueError(f"hop {k} ({hop.service}) received before hop {k - 1} "
+                             f"({trace[k - 1].service}) was sent")
+
+
+def hop_times_ms(trace: list[Hop]) -> list[tuple[str, float]]:
+    """A trace as (hop name, ms): each transfer between two services (``"a -> b"``: a's send
+    to b's receipt) and each service's time in hand (``"b"``). Raises ValueError as
+    :func:`check_trace` does."""
+    check_trace(trace)
+    out: list[tuple[str, float]] = []
+    for before, hop in zip(trace[:-1], trace[1:], strict=True):
+        out.append((f"{before.service} -> {hop.service}", (hop.recv_ns - before.sent_ns) / 1e6))
+        out.append((hop.service, (hop.sent_ns - hop.recv_ns) / 1e6))
+    return out
