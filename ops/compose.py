@@ -25,6 +25,7 @@ class ComposeService:
     depends_on: dict[str, str] = field(default_factory=dict)  # name -> condition
     labels: dict[str, str] = field(default_factory=dict)
     restart: str = "no"
+    profiles: list[str] = field(default_factory=list)
 
 
 def interpolate(text: str, variables: Mapping[str, str]) -> str:
@@ -54,8 +55,13 @@ def _as_dict(value: Any, what: str) -> dict[str, str]:
     raise ValueError(f"{what}: expected a mapping or a list")
 
 
-def load_compose(path: Path, variables: Mapping[str, str]) -> dict[str, ComposeService]:
-    """Parse ``path``; raises ValueError naming the file and the service that is malformed."""
+def load_compose(path: Path, variables: Mapping[str, str],
+                 profiles: frozenset[str] = frozenset()) -> dict[str, ComposeService]:
+    """Parse ``path``; raises ValueError naming the file and the service that is malformed.
+
+    As compose does, a service with ``profiles`` is left out unless one of them is in
+    ``profiles``.
+    """
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
@@ -65,6 +71,9 @@ def load_compose(path: Path, variables: Mapping[str, str]) -> dict[str, ComposeS
     services: dict[str, ComposeService] = {}
     for name, spec in doc["services"].items():
         where = f"{path}: service {name}"
+        wanted = spec.get("profiles") or []
+        if wanted and not set(wanted) & profiles:
+            continue
         command = spec.get("command")
         if isinstance(command, str):
             command = command.split()
@@ -81,6 +90,7 @@ def load_compose(path: Path, variables: Mapping[str, str]) -> dict[str, ComposeS
             depends_on={d: (c or {}).get("condition", "service_started") for d, c in deps.items()},
             labels=_as_dict(spec.get("labels"), where),
             restart=str(spec.get("restart", "no")),
+            profiles=list(wanted),
         )
     for svc in services.values():
         for dep in svc.depends_on:

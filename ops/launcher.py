@@ -27,6 +27,7 @@ from pathlib import Path
 
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
+from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
@@ -150,7 +151,9 @@ class Launcher:
         return "interrupted"
 
     def stop_all(self) -> None:
-        for name in reversed(self.started):
+        # Services labelled wavegrasp.stop-last (the viewer) outlive what feeds them.
+        last = [n for n in self.started if self.services[n].labels.get("wavegrasp.stop-last")]
+        for name in [n for n in reversed(self.started) if n not in last] + last:
             proc = self.procs[name]
             if name == "router" and self.bus is not None:
                 self.pump_bus()
@@ -193,6 +196,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help=f"motion model for the predictor service (default {DEFAULT_MODEL})")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<date-time>)")
     parser.add_argument("--compose", type=Path, help="compose file (default: docker-compose.yml)")
+    parser.add_argument("--viewer", action="store_true",
+                        help="also run rerun's web viewer (the compose file's viewer profile), "
+                        "fed live; it stays up after the run until Ctrl-C")
+    parser.add_argument("--viewer-port", type=int, default=9090,
+                        help="HTTP port of the web viewer (default 9090)")
     return parser.parse_args(argv)
 
 
@@ -220,9 +228,15 @@ def main(argv: list[str] | None = None) -> int:
     }
     if args.predictor:
         env["WAVEGRASP_PREDICTOR"] = args.predictor
+    if args.viewer:
+        grpc_port = free_port()
+        env |= {"WAVEGRASP_VIEWER_BIND": "127.0.0.1", "WAVEGRASP_VIEWER_GRPC_PORT": str(grpc_port),
+                "WAVEGRASP_VIEWER_WEB_PORT": str(args.viewer_port),
+                "WAVEGRASP_VIEWER_URL": f"rerun+http://127.0.0.1:{grpc_port}/proxy"}
     env["ZENOH_CONNECT"] = f"tcp/127.0.0.1:{env['WAVEGRASP_ROUTER_PORT']}"
     try:
-        services = load_compose(compose_path, env)
+        services = load_compose(compose_path, env,
+                                frozenset({"viewer"}) if args.viewer else frozenset())
     except ValueError as exc:
         print(f"wavegrasp up: {exc}", file=sys.stderr)
         return 2
@@ -236,6 +250,11 @@ def main(argv: list[str] | None = None) -> int:
         why = launcher.wait_end() if launcher.bring_up() else "crashed"
         if launcher.interrupted.is_set():
             why = "interrupted"
+        elif args.viewer and "viewer" in launcher.procs:
+            launcher.log(f"{why}; the viewer stays up at "
+                         f"{viewer_url(args.viewer_port, int(env['WAVEGRASP_VIEWER_GRPC_PORT']))}"
+                         " until Ctrl-C")
+            launcher.interrupted.wait()
     finally:
         crashed = launcher.crashed()
         launcher.stop_all()

@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("wavegrasp.sim.main", "PyBullet executes approved plans and judges each grasp"),
     "eval": ("wavegrasp.ops.experiment", "the paper's experiment: trials per predictor and "
              "configuration"),
+    "viewer": ("wavegrasp.ops.viewer", "rerun's web viewer, fed live by the recorder"),
     "latency": ("wavegrasp.ops.latency", "per-hop and end-to-end latency of a run, from its "
                 "traces"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),

@@ -11,7 +11,7 @@ Keys matching ``record_exclude`` (``WAVEGRASP_RECORD_EXCLUDE``, comma-separated 
 expressions) are not written: ``trisect/points`` when the input recording already holds the
 clouds (``wavegrasp eval`` does this; camera frames are still acknowledged).
 ``run.rrd`` is the same run for the rerun viewer (:mod:`wavegrasp.recorder.rerun_log`);
-with ``viewer_port`` the recorder also serves it live to viewers over gRPC.
+with ``viewer_url`` the recorder also streams it live to a viewer (``wavegrasp viewer``).
 """
 
 from __future__ import annotations
@@ -71,9 +71,8 @@ class RecorderSettings(Settings):
     record_exclude: list[str] = Field(default_factory=list,
                                       description="key expressions not to write")
     rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
-    viewer_port: int | None = Field(None, description="also serve the run live to rerun "
-                                    "viewers on this gRPC port")
-    viewer_bind: str = Field("127.0.0.1", description="the address viewers connect to")
+    viewer_url: str | None = Field(None, description="also stream the run live to this "
+                                   "rerun viewer (rerun+http://HOST:PORT/proxy)")
     arm_urdf: str | None = None
 
     @field_validator("record_exclude")
@@ -115,10 +114,10 @@ class Recorder(Service):
         self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
         self._skip: dict[str, bool] = {}  # per key: excluded?
         self.rerun: RerunLog | None = None
-        if settings.rrd or settings.viewer_port is not None:
+        if settings.rrd or settings.viewer_url:
             self.arm = ArmModel.load(settings.arm_urdf or None)
             self.rerun = RerunLog(self.path.with_suffix(".rrd") if settings.rrd else None,
-                                  self.arm.urdf_path, settings.viewer_port, settings.viewer_bind)
+                                  self.arm.urdf_path, settings.viewer_url or None)
         self.tf = StaticTransforms()
         self._to_rerun = {ObjectObservation: "observation", MotionPrediction: "prediction",
                           GraspPlan: "plan", GateDecision: "decision", ArmState: "arm_state",

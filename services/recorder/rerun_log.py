@@ -21,6 +21,7 @@ A blueprint opens the file on the scene beside the gate, latency and log panels.
 
 from __future__ import annotations
 
+import logging
 import uuid
 from collections import deque
 from pathlib import Path
@@ -42,6 +43,7 @@ from wavegrasp.schemas import (
     Pose,
 )
 
+log = logging.getLogger("wavegrasp.recorder")
 TIMELINE = "recording"
 TRACK_LENGTH = 100  # centroids and truths kept in the track lines
 
@@ -63,15 +65,15 @@ def blueprint() -> rrb.Blueprint:
 
 
 class RerunLog:
-    """path : the ``.rrd`` to write (None: none); grpc_port : also serve live on
-    ``grpc_bind``:port for a viewer (None: not); urdf : the arm's description."""
+    """path : the ``.rrd`` to write (None: none); urdf : the arm's description;
+    viewer_url : also stream live to this viewer (``rerun+http://HOST:PORT/proxy``)."""
 
-    def __init__(self, path: Path | None, urdf: Path, grpc_port: int | None = None,
-                 grpc_bind: str = "127.0.0.1", max_cloud_points: int = 4000) -> None:
+    def __init__(self, path: Path | None, urdf: Path, viewer_url: str | None = None,
+                 max_cloud_points: int = 4000) -> None:
         self.rec = rr.RecordingStream("wavegrasp", recording_id=uuid.uuid4())
         sinks: list = [rr.FileSink(str(path))] if path is not None else []
-        if grpc_port is not None:
-            sinks.append(rr.GrpcServerSink(grpc_bind, grpc_port))
+        if viewer_url:
+            sinks.append(rr.GrpcSink(viewer_url))
         self.rec.set_sinks(*sinks, default_blueprint=blueprint())
         self.max_cloud_points = max_cloud_points
         self.urdf = UrdfTree.from_file_path(str(urdf))
@@ -197,7 +199,11 @@ class RerunLog:
         self.rec.log("log/outcomes", rr.TextLog(text, level="INFO" if msg.success else "WARN"))
 
     def close(self) -> None:
-        self.rec.flush()
+        """Flush and close; a viewer that went away first costs only its own stream."""
+        try:
+            self.rec.flush(timeout_sec=5.0)
+        except RuntimeError as exc:  # the gRPC sink's connection severed
+            log.warning("live viewer: %s", exc)
         self.rec.disconnect()
 
 
