@@ -232,11 +232,12 @@ def test_gate_service_on_an_isolated_bus() -> None:
             assert send("wavegrasp/predictor/prediction", prediction(i / 10))
         p = plan(3.0, 3.3, 4.0, "a")
         p.header.trace = [Hop(service="source", recv_ns=time.time_ns())]
+        assert wait_until(lambda: bus.alive_now() >= {"perception", "predictor"}, timeout=5)
         assert send("wavegrasp/planner/plan", p)
         first = decisions(1)[0]
         assert not first.go and first.reason == "upstream not alive: planner"
         tokens.append(bus.session.liveliness().declare_token("wavegrasp/health/planner"))
-        service._alive_at -= 1.0  # let the cache expire now instead of in 0.5 s
+        assert wait_until(lambda: "planner" in bus.alive_now(), timeout=5)
         assert send("wavegrasp/planner/plan", p)
         assert send("wavegrasp/planner/plan", plan(3.0, 3.0, 2.0, "bad"))
         d, bad = decisions(3)[1:]
@@ -254,6 +255,8 @@ def test_gate_service_on_an_isolated_bus() -> None:
         assert service.counters["no-go: upstream"] == 1
         assert service.counters["no-go: bad plan"] == 1
         assert service.counters["errors scored"] == 29
+        tokens.pop().undeclare()  # the planner goes away: the gate sees it gone
+        assert wait_until(lambda: "planner" not in bus.alive_now(), timeout=5)
         for token in tokens:
             token.undeclare()
     finally:

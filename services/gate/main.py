@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 import time
 
@@ -30,8 +29,6 @@ from wavegrasp.schemas import (
 
 log = logging.getLogger("wavegrasp.gate")
 DECISION_KEY = "wavegrasp/gate/decision"
-ALIVE_REFRESH_S = 0.5  # liveliness is queried at most this often (s), on the loop
-ALIVE_TIMEOUT_S = 0.2  # the query's own bound (s): it runs on the loop
 
 
 class GateSettings(Settings, GateConfig):
@@ -55,23 +52,11 @@ class GateService(Service):
     def __init__(self, settings: GateSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
         self.gate = Gate(settings.gate_config())
-        self.alive: set[str] = set()
-        self._alive_at = -math.inf  # monotonic s of the last liveliness query
+        self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction, MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
-
-    def refresh_alive(self) -> set[str]:
-        """The services alive, re-queried at most every ``ALIVE_REFRESH_S``."""
-        now = time.monotonic()
-        if now - self._alive_at >= ALIVE_REFRESH_S:
-            self.alive = self.bus.alive_services(timeout_s=ALIVE_TIMEOUT_S)
-            self._alive_at = now
-        return self.alive
-
-    def on_tick(self) -> None:
-        self.refresh_alive()
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.gate.on_observation(msg) is not None:
@@ -85,10 +70,12 @@ class GateService(Service):
         self.gate.on_outcome(msg.plan_id)
 
     def on_plan(self, msg: GraspPlan, d: Delivery) -> None:
-        alive = self.refresh_alive()
+        alive = self.bus.alive_now()
         header = derived_header(msg.header, self.name, d.recv_ns)
         now_ns = self.clock.now_ns()
-        latency_s = plan_latency_s(msg, time.time_ns())
+        # In recording time: a lockstep replay waits for the pipeline, so its latency costs
+        # the plan nothing (and a wall-clock figure would make runs differ).
+        latency_s = plan_latency_s(msg, time.time_ns()) * self.clock.rate
         try:
             decision = self.gate.decide(msg, now_ns, alive, latency_s, header=header)
         except ValueError as exc:  # a plan we cannot judge is a plan we do not run

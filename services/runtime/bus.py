@@ -214,6 +214,27 @@ class Bus:
                 names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         return names
 
+    def watch_alive(self) -> None:
+        """Keep :attr:`alive` up to date from liveliness events (tokens that exist now, then
+        each that appears or goes), rather than asking the router each time."""
+        self.alive: set[str] = set()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            name = str(sample.key_expr).rsplit("/", 1)[-1]
+            with self._lock:  # zenoh's thread; readers take a copy under the lock
+                if sample.kind == zenoh.SampleKind.DELETE:
+                    self.alive.discard(name)
+                else:
+                    self.alive.add(name)
+
+        self._keep.append(self.session.liveliness().declare_subscriber(
+            health_key("*"), on_token, history=True))
+
+    def alive_now(self) -> set[str]:
+        """A copy of the services alive, as :meth:`watch_alive` sees them."""
+        with self._lock:
+            return set(self.alive)
+
     def wait_for_services(self, names: list[str], timeout_s: float) -> set[str]:
         """Wait until every service in ``names`` is alive; returns those still missing."""
         deadline = time.monotonic() + timeout_s

@@ -26,6 +26,12 @@ class RecordingClock:
         self._rate = msg.rate
 
     @property
+    def rate(self) -> float:
+        """Recording seconds per wall second: 1 live or realtime, 0 when the recording waits
+        (lockstep, fast)."""
+        return 1.0 if self.wall or self._stamp_ns is None else self._rate
+
+    @property
     def started(self) -> bool:
         return self.wall or self._stamp_ns is not None
 
