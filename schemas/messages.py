@@ -190,6 +190,9 @@ class Clock(Message):
 
     header: Header
     rate: float = Field(1.0, description="recording seconds per wall second; 0 = as fast")
+    published: dict[str, int] = Field(
+        default_factory=dict, description="CDR messages the player has published so far, per "
+        "key: a service that needs all of them before it finishes a frame waits for them")
 
 
 class FrameAck(Message):

@@ -88,7 +88,8 @@ class Player(Service):
         self._clock_seq += 1
         rate = {"realtime": 1.0, "fast": 0.0, "lockstep": 0.0}[self.cfg.pace]
         self.bus.publish("wavegrasp/clock", Clock(
-            header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate))
+            header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate,
+            published=self.bus.published()))
 
     def laggards(self, seq: int) -> str:
         return ", ".join(name for name, acked in self.acked.items() if acked < seq)

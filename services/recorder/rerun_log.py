@@ -8,8 +8,8 @@ timeline, ``recording``: each message's capture time on the recording clock. Ent
 - ``world/object/centroid`` and ``world/object/track``: the tracked centroid and its recent path;
 - ``world/object/truth`` and ``world/object/truth_track``: the ground truth (generated
   recordings);
-- ``world/prediction/path`` and ``world/prediction/sigma``: the predicted path, spheres of one
-  sigma along it;
+- ``world/prediction/path`` and ``world/prediction/sigma``: the predicted path, wireframe
+  spheres of one sigma (at most 5 cm) along it;
 - ``world/plan/candidates``, ``world/plan/grasp``, ``world/plan/path``: grasp poses checked
   (approach arrows), the chosen one, and the planned tool path;
 - the arm from its URDF on its ``tf_static`` mount, its joints from ``wavegrasp/sim/arm_state``;
@@ -143,9 +143,11 @@ class RerunLog:
         self._at(msg.header.stamp_ns)
         self.rec.log("world/prediction/path", rr.LineStrips3D([p], radii=0.0015,
                                                               colors=[60, 120, 255]))
-        every = slice(None, None, max(1, len(p) // 20))
-        self.rec.log("world/prediction/sigma", rr.Points3D(
-            p[every], radii=np.clip(sigma[every], 0.001, 0.2), colors=[60, 120, 255, 60]))
+        every = slice(None, None, max(1, len(p) // 10))
+        self.rec.log("world/prediction/sigma", rr.Ellipsoids3D(
+            centers=p[every], half_sizes=np.repeat(np.clip(sigma[every], 0.001, 0.05)[:, None],
+                                                   3, axis=1),
+            colors=[60, 120, 255], fill_mode="wireframe"))
 
     def plan(self, msg: GraspPlan) -> None:
         self._at(msg.header.stamp_ns)

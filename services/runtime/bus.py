@@ -130,6 +130,11 @@ class Bus:
             bytes(cdr), attachment=att.encode())
         return seq
 
+    def published(self) -> dict[str, int]:
+        """CDR messages published so far, per key."""
+        with self._lock:
+            return dict(self._seq)
+
     def publish_bytes(self, key: str, payload: bytes, encoding: str = JSON) -> None:
         """Publish raw bytes (tools and fault injection); services use the typed calls."""
         self.session.put(key, payload, encoding=zenoh.Encoding(encoding),

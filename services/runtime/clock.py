@@ -19,11 +19,14 @@ class RecordingClock:
         self._stamp_ns: int | None = None
         self._at_mono_ns = 0
         self._rate = 1.0
+        #: The player's CDR messages published so far, per key (as of the latest tick).
+        self.published: dict[str, int] = {}
 
     def on_clock(self, msg: Clock) -> None:
         self._stamp_ns = msg.header.stamp_ns
         self._at_mono_ns = time.monotonic_ns()
         self._rate = msg.rate
+        self.published = msg.published
 
     @property
     def rate(self) -> float:

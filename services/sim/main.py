@@ -26,9 +26,10 @@ from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose, decod
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import new_header
+from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import (
     ArmState,
+    FrameAck,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -42,6 +43,7 @@ from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
 
 log = logging.getLogger("wavegrasp.sim")
 OUTCOME_KEY = "wavegrasp/sim/outcome"
+TRUTH_KEY = "groundtruth/object"
 ARM_STATE_KEY = "wavegrasp/sim/arm_state"
 #: Without ground truth for this long (recording seconds), the tracked centroid drives.
 TRUTH_STALE_S = 0.5
@@ -83,8 +85,10 @@ class SimService(Service):
         self._pose: tuple[float, np.ndarray, np.ndarray] | None = None  # the newest, to build
         self._results: list[Result] = []
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
+        self._truths = 0  # ground truths received (their attachments' sequence + 1)
+        self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
-        self.bus.subscribe("groundtruth/object", self.on_truth)
+        self.bus.subscribe(TRUTH_KEY, self.on_truth)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/perception/mesh", self.on_mesh, ObjectMesh)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
@@ -96,8 +100,25 @@ class SimService(Service):
 
     def on_truth(self, d: Delivery) -> None:
         T, _frame, stamp_ns = decode_pose(d.payload)
+        att = CdrAttachment.decode(d.attachment)
+        if att is not None:
+            self._truths = max(self._truths, att.seq + 1)
         self._truth_at = stamp_ns * 1e-9
         self.advance(stamp_ns * 1e-9, T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat())
+        while self._held and self._truths >= self._held[0][0]:
+            _needed, msg, delivery = self._held.pop(0)
+            super().on_upstream_ack(msg, delivery)
+
+    def on_upstream_ack(self, msg: FrameAck, d: Delivery) -> None:
+        """Finish a frame once every ground truth the player sent before it has arrived:
+        zenoh hands them over on another subscriber, so they may come after the frame's
+        acknowledgement, and a lockstep run must see them alike every time."""
+        needed = self.clock.published.get(TRUTH_KEY, 0)
+        if self._held or self._truths < needed:
+            self.counters["frames waiting for ground truth"] += 1
+            self._held.append((needed, msg, d))
+            return
+        super().on_upstream_ack(msg, d)
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.shape is None and msg.radius_m is not None and msg.shape is not None:
