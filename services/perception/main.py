@@ -13,8 +13,11 @@ ground truth.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import sys
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -56,6 +59,12 @@ def object_rotation(axis: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.cross(z, x), z])
 
 
+def lower_priority() -> None:
+    """Meshing yields the cores to the per-frame work (Linux: a thread's own nice value)."""
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+
+
 class PerceptionService(Service):
     def __init__(self, settings: PerceptionSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
@@ -64,7 +73,8 @@ class PerceptionService(Service):
         self.tf = StaticTransforms()
         self.accumulator = MeshAccumulator()
         self._mesh_job: Future | None = None
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh",
+                                            initializer=lower_priority)
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
         self._waiting: Delivery | None = None  # a frame whose transform has not come yet
