@@ -86,6 +86,8 @@ class SimService(Service):
         self._results: list[Result] = []
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self._truths = 0  # ground truths received (their attachments' sequence + 1)
+        self._go: Attempt | None = None  # approved this frame, not started yet
+        self._plans_flow = False  # a decision has come: the trials can begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe(TRUTH_KEY, self.on_truth)
@@ -153,9 +155,25 @@ class SimService(Service):
             self.plans.pop(next(iter(self.plans)))
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
-        if self._idle_since is None and self.world is not None:  # plans flow: trial 0 begins
-            self._idle_since = self.world.time_s
+        self._plans_flow = True  # trial 0 begins at this frame's end
         if not msg.go:
+            return
+        plan = self.plans.get(msg.plan_id)
+        if plan is None:
+            raise ValueError(f"decision for plan {msg.plan_id} that never arrived")
+        if self._go is not None:
+            self.counters["ignored: another go this frame"] += 1
+            return
+        attempt = Attempt.from_message(plan, self.arm.joint_names)
+        attempt.predicted = self.predictions.get(plan.header.seq)
+        self._go = attempt  # started when the frame finishes (below)
+
+    def start_attempt(self) -> None:
+        """Start the plan approved in this frame, at the frame's end, where every ground truth
+        before the frame is in the scene: the same moment in every lockstep run (the go itself
+        may come before or after some of them, on another subscriber)."""
+        attempt, self._go = self._go, None
+        if attempt is None or self.world is None:
             return
         if self.trial >= self.cfg.trials:
             self.counters["ignored: trials over"] += 1
@@ -163,15 +181,10 @@ class SimService(Service):
         if self.executor is None or self.executor.busy:
             self.counters["ignored: busy" if self.executor else "ignored: no scene yet"] += 1
             return
-        plan = self.plans.get(msg.plan_id)
-        if plan is None:
-            raise ValueError(f"decision for plan {msg.plan_id} that never arrived")
-        attempt = Attempt.from_message(plan, self.arm.joint_names)
-        attempt.predicted = self.predictions.get(plan.header.seq)
-        attempt.approved_at = self.world.time_s if self.world is not None else None
+        attempt.approved_at = self.world.time_s
         self.executor.start(attempt)
         self.attempt += 1
-        self._executing = msg.plan_id
+        self._executing = attempt.plan_id
         self.counters["attempts"] += 1
 
     # --- the scene ----------------------------------------------------------------------
@@ -249,6 +262,9 @@ class SimService(Service):
         for result in self._results:
             self.publish_outcome(result)
         self._results.clear()
+        if self._idle_since is None and self._plans_flow:  # trial 0 begins
+            self._idle_since = self.world.time_s
+        self.start_attempt()
         if self.executor is not None:
             self.check_trial_timeout()
             if self._mesh is not None and not self.executor.busy:
