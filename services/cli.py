@@ -56,16 +56,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for var in THREAD_LIMITS:  # read when numpy and open3d load, so before any import
         os.environ.setdefault(var, "1")
-    if name in SERVICES and os.environ.get("WAVEGRASP_NICE"):
+    if name in SERVICES:
         # Before any thread starts (threads inherit it): the recorder and the sim yield the
         # cores to the services on the camera-to-decision path.
         try:
-            os.nice(int(os.environ["WAVEGRASP_NICE"]))
+            os.nice(int(os.environ.get("WAVEGRASP_NICE") or 0))
         except ValueError:
             print(f"wavegrasp {name}: WAVEGRASP_NICE must be an integer, got "
                   f"{os.environ['WAVEGRASP_NICE']!r}", file=sys.stderr)
             return 2
-    if name in SERVICES:
         # Block the stop signals before any library starts a thread (threads inherit the
         # mask): the service loop then takes them with sigtimedwait, whichever thread the
         # kernel would have picked and whatever handler a library installed.

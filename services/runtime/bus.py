@@ -102,6 +102,7 @@ class Bus:
         self._own: list[tuple[zenoh.KeyExpr, int]] = []  # wavegrasp/ key expressions, routes
         self._own_subscriber: zenoh.Subscriber | None = None
         self._lock = threading.Lock()
+        self.alive: set[str] = set()  # kept up to date once watch_alive() is called
 
     # -- publishing ---------------------------------------------------------------------------
     def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
@@ -222,8 +223,6 @@ class Bus:
     def watch_alive(self) -> None:
         """Keep :attr:`alive` up to date from liveliness events (tokens that exist now, then
         each that appears or goes), rather than asking the router each time."""
-        self.alive: set[str] = set()
-
         def on_token(sample: zenoh.Sample) -> None:
             name = str(sample.key_expr).rsplit("/", 1)[-1]
             with self._lock:  # zenoh's thread; readers take a copy under the lock
