@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from mcap.writer import Writer
 
-from wavegrasp.ops.latency import format_table, main, read_latency
+from wavegrasp.ops.latency import format_table, main, merge, read_latency
 from wavegrasp.runtime.trace import check_trace
 from wavegrasp.schemas import GateDecision, Header, Hop, ObjectObservation
 
@@ -59,6 +59,21 @@ def test_hops_and_end_to_end_from_decision_traces(tmp_path: Path) -> None:
     assert "1 dropped" in format_table(lat)
     assert main([str(run), "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "latency.png").stat().st_size > 0
+
+
+def test_several_runs_are_taken_together(tmp_path: Path, capsys) -> None:
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    write_run(a, observed=[0, 1, 2], decisions=[chain(10**18, 5.0, 4.0)])
+    write_run(b, observed=[0, 2], decisions=[chain(10**18, 7.0, 12.0),
+                                             chain(10**18 + 100 * MS, 6.0, 8.0)])
+    lat = merge([read_latency(a), read_latency(b)])
+    assert lat.end_to_end == pytest.approx([13.7, 23.7, 18.7])
+    assert (lat.frames_published, lat.frames_observed, lat.frames_dropped) == (6, 5, 1)
+    assert {r["hop"]: r["n"] for r in lat.table()}["planner"] == 3
+    assert main([str(a), str(b)]) == 0
+    assert "2 runs (" in capsys.readouterr().out
+    assert main([str(a), str(tmp_path / "missing.mcap")]) == 2
+    assert "missing.mcap" in capsys.readouterr().err
 
 
 def test_broken_traces_and_files_are_named(tmp_path: Path, capsys) -> None:

@@ -145,3 +145,47 @@ def test_errors_name_the_file(tmp_path: Path, tank: Path) -> None:
         open_recording(none, topics=("/trisect/points", "/tf_static"))
     with RecordingWriter(tmp_path / "bad.mcap", {}) as w, pytest.raises(ValueError, match="shape"):
         w.write_points(1, np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize("layout", ["xyz float32 packed", "xyz + intensity", "zyx order",
+                                    "float64", "big-endian", "x after padding"])
+def test_decode_points_reads_every_field_layout(layout: str) -> None:
+    """Drivers lay out PointCloud2 fields differently; each gives the same points, and points
+    with a NaN or inf coordinate are dropped and counted."""
+    from wavegrasp.recording_io.ros_msgs import FLOAT32, FLOAT64, decode_points
+
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(50, 3)).astype(np.float32)
+    xyz[7, 1], xyz[20, 2] = np.nan, np.inf
+    size, kind, order, pad, extra = 4, FLOAT32, "xyz", 0, 0
+    big = layout == "big-endian"
+    if layout == "xyz + intensity":
+        extra = 4
+    elif layout == "zyx order":
+        order = "zyx"
+    elif layout == "float64":
+        size, kind = 8, FLOAT64
+    elif layout == "x after padding":
+        pad = 4
+    step = pad + 3 * size + extra
+    dtype = np.dtype({"names": list("xyz"), "formats": [f"{'>' if big else '<'}f{size}"] * 3,
+                      "offsets": [pad + size * order.index(c) for c in "xyz"], "itemsize": step})
+    raw = np.zeros(len(xyz), dtype)
+    for i, c in enumerate("xyz"):
+        raw[c] = xyz[:, i]
+    t = ros2_typestore().types
+    fields = [t["sensor_msgs/msg/PointField"](name=c, offset=pad + size * order.index(c),
+                                              datatype=kind, count=1) for c in "xyz"]
+    header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=5, nanosec=7),
+                                      frame_id="cam")
+    msg = t["sensor_msgs/msg/PointCloud2"](
+        header=header, height=1, width=len(xyz), fields=fields, is_bigendian=big,
+        point_step=step, row_step=step * len(xyz), data=raw.view(np.uint8).reshape(-1),
+        is_dense=False)
+    cloud = decode_points(bytes(ros2_typestore().serialize_cdr(
+        msg, "sensor_msgs/msg/PointCloud2")))
+    finite = np.isfinite(xyz).all(axis=1)
+    assert cloud.points.dtype == np.float32 and cloud.points.shape == (48, 3)
+    np.testing.assert_array_equal(cloud.points, xyz[finite])
+    assert cloud.dropped_nonfinite == 2 and cloud.frame_id == "cam"
+    assert cloud.stamp_ns == 5_000_000_007

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from wavegrasp.arm.transforms import skew
+from wavegrasp.arm.transforms import cross, skew
 from wavegrasp.arm.urdf import UrdfJoint
 
 
@@ -79,7 +79,7 @@ class Chain:
         """Geometric Jacobian, shape (6, n): rows linear (m per unit q) then angular velocity
         (rad/s per unit q) of the tip, both in frame base, from the output of `frames`."""
         J = np.empty((6, self.dof))
-        J[:3] = np.where(self._prismatic[:, None], Z, np.cross(Z, T[:3, 3] - P)).T
+        J[:3] = np.where(self._prismatic[:, None], Z, cross(Z, T[:3, 3] - P)).T
         J[3:] = np.where(self._prismatic[:, None], 0.0, Z).T
         return J
 

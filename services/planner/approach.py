@@ -8,9 +8,11 @@ object's motion (equation 8); waypoints P_i = P_init + (i/N)(P_f − P_init) + �
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
+from wavegrasp.arm.transforms import cross
 from wavegrasp.schemas import MotionPrediction
 
 
@@ -33,16 +35,22 @@ class PredictedPath:
                    np.array([[x.x, x.y, x.z] for x in s]), np.array([x.sigma for x in s]),
                    pred.period_s)
 
-    def at(self, t: float | np.ndarray) -> np.ndarray:
-        """Position(s) at ``t`` seconds: shape (3,) or (k, 3)."""
-        t = np.atleast_1d(t)
-        out = np.column_stack([np.interp(t, self.times_s, self.positions[:, i])
-                               for i in range(3)])
-        return out[0] if out.shape[0] == 1 else out
+    @cached_property
+    def spacing_s(self) -> float:
+        """The median time between samples, seconds."""
+        return float(np.median(np.diff(self.times_s)))
 
-    def velocity(self, t: float) -> np.ndarray:
-        """Velocity (3,) m/s at ``t`` (central difference over one sample spacing)."""
-        h = float(np.median(np.diff(self.times_s)))
+    def at(self, t: float | np.ndarray) -> np.ndarray:
+        """Position(s) at ``t`` seconds: shape (3,) for a scalar ``t``, else (k, 3)."""
+        ts = np.atleast_1d(t)
+        out = np.column_stack([np.interp(ts, self.times_s, self.positions[:, i])
+                               for i in range(3)])
+        return out[0] if np.ndim(t) == 0 else out
+
+    def velocity(self, t: float | np.ndarray) -> np.ndarray:
+        """Velocity m/s at ``t`` (central difference over one sample spacing): shape (3,) for
+        a scalar ``t``, else (k, 3)."""
+        h = self.spacing_s
         return (self.at(t + h / 2) - self.at(t - h / 2)) / h
 
 
@@ -66,7 +74,7 @@ def grasp_times(path: PredictedPath, earliest_s: float, rule: str,
         return [float(t) for t in sorted(usable, key=lambda t: abs(t - target))]
     if rule != "slowest":
         raise ValueError(f"grasp time rule must be 'period' or 'slowest', got {rule!r}")
-    speed = np.array([np.linalg.norm(path.velocity(t)) for t in usable])
+    speed = np.linalg.norm(path.velocity(usable), axis=1)
     miss = np.interp(usable, path.times_s, path.sigma) + timing_s * speed
     return [float(usable[i]) for i in np.argsort(miss, kind="stable")]
 
@@ -91,7 +99,7 @@ def perpendicular(d: np.ndarray, towards: np.ndarray) -> np.ndarray:
     """The unit vector ⟂ to the unit ``d`` closest to ``towards`` (any ⟂ one if parallel)."""
     ref = towards - (towards @ d) * d
     if np.linalg.norm(ref) < 1e-6:
-        ref = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0, 0])
+        ref = cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else cross(d, [1.0, 0, 0])
     return _unit(ref)
 
 
@@ -107,19 +115,19 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
     paper's side approach), never away from the object's arrival, never up from below (where
     a tethered object's line is). Those nearest the ``preferred`` z (unit, ⟂ d) come first.
     """
-    if axis is not None and np.linalg.norm(np.cross(axis, d)) > 0.3:
-        closings = [_unit(np.cross(axis, d))]
+    if axis is not None and np.linalg.norm(cross(axis, d)) > 0.3:
+        closings = [_unit(cross(axis, d))]
     else:  # a sphere, or a cylinder arriving end first: any closing direction across d
-        e1 = np.cross(-preferred, d)
-        e2 = np.cross(d, e1)
+        e1 = cross(-preferred, d)
+        e2 = cross(d, e1)
         closings = [np.cos(a) * e1 + np.sin(a) * e2 for a in np.radians([0, 45, 90, 135])]
     frames = []
     for x in closings:
-        w = np.cross(x, d)
+        w = cross(x, d)
         for theta in np.radians(np.linspace(-90.0, 90.0, count)):
             z = -np.cos(theta) * d + np.sin(theta) * w
             if z[2] < 0.5:
-                frames.append(np.column_stack([x, np.cross(z, x), z]))
+                frames.append(np.column_stack([x, cross(z, x), z]))
     return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
 
 

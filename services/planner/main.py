@@ -25,11 +25,9 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header
 from wavegrasp.schemas import (
     ArmState,
-    CartesianSample,
     GateDecision,
     GraspOutcome,
     GraspPlan,
-    JointSample,
     MotionPrediction,
     ObjectObservation,
     Pose,
@@ -52,19 +50,22 @@ def vec(p: np.ndarray) -> Vec3:
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                service: str) -> GraspPlan:
     ns = lambda t: int(round(t * 1e9))  # noqa: E731
-    return GraspPlan(
+    t_ns = np.rint(plan.times * 1e9).astype(np.int64).tolist()
+    # Plain dicts validated at once: a third of the time of building each sample's model.
+    return GraspPlan.model_validate(dict(
         header=derived_header(pred.header, service, recv_ns),
         plan_id=f"{pred.header.seq}-{ns(plan.t_grasp)}", t_start_ns=ns(plan.t_start),
         t_grasp_ns=ns(plan.t_grasp),
         grasp=pose(plan.grasp_T_world),
         approach=vec(plan.approach), joint_names=list(arm.joint_names),
-        joint_trajectory=[JointSample(t_ns=ns(t), positions=qi.tolist(), velocities=vi.tolist())
-                          for t, qi, vi in zip(plan.times, plan.q, plan.qd, strict=True)],
-        cartesian_path=[CartesianSample(t_ns=ns(t), x=p[0], y=p[1], z=p[2])
-                        for t, p in zip(plan.times, plan.tool, strict=True)],
+        joint_trajectory=[{"t_ns": t, "positions": qi, "velocities": vi}
+                          for t, qi, vi in zip(t_ns, plan.q.tolist(), plan.qd.tolist(),
+                                               strict=True)],
+        cartesian_path=[{"t_ns": t, "x": p[0], "y": p[1], "z": p[2]}
+                        for t, p in zip(t_ns, plan.tool.tolist(), strict=True)],
         confidence=plan.confidence, waypoints=[vec(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
-        t_close_ns=ns(plan.t_close), candidates=[pose(T) for T in plan.candidates])
+        t_close_ns=ns(plan.t_close), candidates=[pose(T) for T in plan.candidates]))
 
 
 def pose(T: np.ndarray) -> Pose:

@@ -57,10 +57,19 @@ def decode_points(cdr: bytes) -> Cloud:
                          f"{msg.width}x{msg.height} points of {step} bytes need {n * step}")
     base = ">f" if msg.is_bigendian else "<f"
     size = 4 if kinds == {FLOAT32} else 8
-    dtype = np.dtype({"names": list("xyz"), "formats": [f"{base}{size}"] * 3,
-                      "offsets": [fields[c].offset for c in "xyz"], "itemsize": max(step, 1)})
-    raw = np.frombuffer(msg.data, dtype=dtype, count=n) if n else np.zeros(0, dtype)
-    pts = np.stack([raw["x"], raw["y"], raw["z"]], axis=1).astype(np.float32, copy=False)
+    x = fields["x"].offset
+    if n and [fields[c].offset for c in "xyz"] == [x, x + size, x + 2 * size] and (
+            x % size == 0 and step % size == 0):
+        # x, y, z side by side (the usual layout): one strided view, no per-field copies.
+        rows = np.frombuffer(msg.data, dtype=f"{base}{size}", count=n * step // size)
+        pts = rows.reshape(n, step // size)[:, x // size:x // size + 3]
+    else:
+        dtype = np.dtype({"names": list("xyz"), "formats": [f"{base}{size}"] * 3,
+                          "offsets": [fields[c].offset for c in "xyz"],
+                          "itemsize": max(step, 1)})
+        raw = np.frombuffer(msg.data, dtype=dtype, count=n) if n else np.zeros(0, dtype)
+        pts = np.stack([raw["x"], raw["y"], raw["z"]], axis=1)
+    pts = pts.astype(np.float32, copy=False)
     finite = np.isfinite(pts).all(axis=1)
     return Cloud(pts[finite], msg.header.frame_id, stamp_ns(msg.header),
                  int(n - finite.sum()))
