@@ -27,6 +27,19 @@ class ComposeService:
     restart: str = "no"
     profiles: list[str] = field(default_factory=list)
 
+    def restarts_after(self, exit_code: int, restarts_so_far: int) -> bool:
+        """Whether compose's ``restart`` policy starts the service again after it exited with
+        ``exit_code``, having been restarted ``restarts_so_far`` times already."""
+        policy, _, limit = self.restart.partition(":")
+        if policy in ("always", "unless-stopped"):
+            return True
+        if policy != "on-failure" or exit_code == 0:
+            return False
+        return not limit or restarts_so_far < int(limit)
+
+
+RESTART_POLICY = re.compile(r"no|always|unless-stopped|on-failure(:[0-9]+)?")
+
 
 def interpolate(text: str, variables: Mapping[str, str]) -> str:
     """Compose variable substitution on one string."""
@@ -79,6 +92,10 @@ def load_compose(path: Path, variables: Mapping[str, str],
             command = command.split()
         if not command:
             raise ValueError(f"{where}: needs a command")
+        restart = str(spec.get("restart", "no"))
+        if not RESTART_POLICY.fullmatch(restart):
+            raise ValueError(f"{where}: restart must be no, always, unless-stopped or "
+                             f"on-failure[:N], got {restart!r}")
         deps = spec.get("depends_on") or {}
         if isinstance(deps, list):
             deps = {d: {"condition": "service_started"} for d in deps}
@@ -89,7 +106,7 @@ def load_compose(path: Path, variables: Mapping[str, str],
                          for k, v in _as_dict(spec.get("environment"), where).items()},
             depends_on={d: (c or {}).get("condition", "service_started") for d, c in deps.items()},
             labels=_as_dict(spec.get("labels"), where),
-            restart=str(spec.get("restart", "no")),
+            restart=restart,
             profiles=list(wanted),
         )
     for svc in services.values():

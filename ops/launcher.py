@@ -23,6 +23,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
@@ -34,6 +35,21 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
 
 STOP_TIMEOUT_S = 10.0
+#: As compose restarts a service: after 100 ms, doubling with each restart in a row, reset once
+#: it has stayed up this long.
+RESTART_DELAY_S = 0.1
+RESTART_DELAY_MAX_S = 10.0
+RESTART_STABLE_S = 10.0
+
+
+@dataclass
+class Restart:
+    """A service that failed and was started again; seconds since the run started."""
+
+    exit_code: int
+    died_s: float
+    restarted_s: float | None = None
+    back_s: float | None = None  # its liveliness token is up again
 
 
 def free_port() -> int:
@@ -62,7 +78,12 @@ class Launcher:
         self.player_status: dict = {}
         self.interrupted = threading.Event()
         self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
+        self.restarts: dict[str, list[Restart]] = {}
         self._pumps: list[threading.Thread] = []
+        self._t0 = time.monotonic()
+        self._up_since: dict[str, float] = {}
+        self._delay: dict[str, float] = {}
+        self._due: dict[str, float] = {}  # restarts waiting for their delay
 
     def log(self, text: str) -> None:
         print(f"{'up':>10} | {text}", flush=True)
@@ -78,7 +99,9 @@ class Launcher:
         proc = subprocess.Popen(local_command(svc.command), env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, start_new_session=True)
         self.procs[name] = proc
-        self.started.append(name)
+        self._up_since[name] = time.monotonic()
+        if name not in self.started:
+            self.started.append(name)
         pump = threading.Thread(target=self._pump, args=(name, proc.stdout), daemon=True)
         pump.start()
         self._pumps.append(pump)
@@ -86,6 +109,7 @@ class Launcher:
     def connect(self) -> None:
         settings = Settings.from_env("launcher", env=self.env, connect_timeout_s=20.0)
         self.bus = Bus(settings)
+        self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/*/stats", self.on_stats, ServiceStats)
         self.bus.subscribe("wavegrasp/player/status", self.on_status, PlayerStatus)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
@@ -110,6 +134,51 @@ class Launcher:
 
     def crashed(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() not in (None, 0)]
+
+    def now_s(self) -> float:
+        return time.monotonic() - self._t0
+
+    def handle_failures(self) -> bool:
+        """Restart failed services as their compose ``restart`` policy says (after compose's
+        delay); False if one failed that may not be restarted."""
+        now = time.monotonic()
+        for name in self.crashed():
+            if name in self._due:
+                continue
+            code = self.procs[name].returncode
+            history = self.restarts.setdefault(name, [])
+            if not self.services[name].restarts_after(code, len(history)):
+                return False
+            if now - self._up_since[name] >= RESTART_STABLE_S:
+                self._delay[name] = RESTART_DELAY_S
+            delay = self._delay.get(name, RESTART_DELAY_S)
+            self._delay[name] = min(2 * delay, RESTART_DELAY_MAX_S)
+            self._due[name] = now + delay
+            history.append(Restart(code, round(self.now_s(), 3)))
+            self.log(f"{name} exited with code {code}: restarting it in {delay:.1f} s "
+                     f"(restart {len(history)})")
+        for name, due in list(self._due.items()):
+            if now >= due:
+                del self._due[name]
+                self.start(name)
+                self.restarts[name][-1].restarted_s = round(self.now_s(), 3)
+        self.note_back()
+        return True
+
+    def note_back(self) -> None:
+        """Stamp each restarted service's return: its liveliness token is up again."""
+        if self.bus is None:
+            return
+        alive = self.bus.alive_now()
+        for name, history in self.restarts.items():
+            last = history[-1] if history else None
+            if not (last and last.restarted_s is not None and last.back_s is None):
+                continue
+            # A token that appeared after the restart: the dead process's may linger a moment.
+            since = self.bus.alive_since.get(name, -1.0) - self._t0
+            if name in alive and since >= last.restarted_s:
+                last.back_s = round(since, 3)
+                self.log(f"{name} is back {last.back_s - last.died_s:.1f} s after it died")
 
     def wait_healthy(self, names: list[str], timeout_s: float = 30.0) -> bool:
         assert self.bus is not None
@@ -143,7 +212,7 @@ class Launcher:
         enders = [n for n, s in self.services.items() if s.labels.get("wavegrasp.ends-run")]
         while not self.interrupted.is_set():
             self.pump_bus()
-            if self.crashed():
+            if not self.handle_failures():
                 return "crashed"
             if any(self.procs[n].poll() == 0 for n in enders):
                 return "finished"
@@ -225,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         **{k: v for k, v in os.environ.items() if k.startswith(("WAVEGRASP_", "ZENOH_"))},
         "WAVEGRASP_RECORDING": str(recording.resolve()), "WAVEGRASP_OUT": str(out),
         "WAVEGRASP_PACE": args.pace,
+        "WAVEGRASP_PLAYER_RESUME_FILE": str(out / "player-position.json"),
     }
     if args.predictor:
         env["WAVEGRASP_PREDICTOR"] = args.predictor
@@ -266,11 +336,20 @@ def main(argv: list[str] | None = None) -> int:
         "duration_s": round(time.time() - started, 3), "player": launcher.player_status,
         "bad_messages": {n: s["bad"] for n, s in launcher.stats.items() if s.get("bad")},
         "services": launcher.stats,
+        "restarts": {n: [asdict(r) for r in rs] for n, rs in launcher.restarts.items() if rs},
         "outcomes": launcher.outcomes,
         "files": sorted(p.name for p in out.glob("run*.mcap")),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     bad = sum(sum(b.values()) for b in summary["bad_messages"].values())
+    for name, per_key in summary["bad_messages"].items():
+        reasons = launcher.stats[name].get("last_bad_reason", {})
+        for key, n in sorted(per_key.items()):
+            launcher.log(f"bad messages: {name} <- {key}: {n} (last: {reasons.get(key, '?')})")
+    for name, rs in launcher.restarts.items():
+        backs = [f"{r.back_s - r.died_s:.1f} s" if r.back_s is not None else "not back"
+                 for r in rs]
+        launcher.log(f"restarted {name} {len(rs)} time(s); back after {', '.join(backs)}")
     kinds = Counter("success" if o["success"] else o["failure"] for o in launcher.outcomes)
     launcher.log(f"{why}: {launcher.player_status.get('frames', 0)} frames, {bad} bad messages;"
                  f" grasps {dict(kinds) or 'none'};"

@@ -10,12 +10,21 @@ Pacing: ``realtime`` keeps the recording's rate; ``fast`` goes as fast as the bu
 acknowledged it on ``wavegrasp/<service>/ack``, so a run is deterministic. In every pacing the
 player waits at the end for the last frame's acknowledgement (bounded by ``ack_timeout_s``)
 so nothing is cut off when the run stops.
+
+With ``resume_file`` (``WAVEGRASP_RESUME_FILE``) the player notes after each camera frame how
+far it got; started again on the same recording (compose restarts it after a crash) it goes on
+after that frame, its sequence numbers carrying on. Static transforms are sent again every
+2 s of recording time when the recording does not repeat them (a ROS bag latches them once),
+so a service that restarts mid-run gets them.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -23,7 +32,12 @@ from typing import Literal
 
 from pydantic import Field
 
-from wavegrasp.recording_io.reader import Recording, RecordingError, open_recording
+from wavegrasp.recording_io.reader import (
+    RecordedMessage,
+    Recording,
+    RecordingError,
+    open_recording,
+)
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -32,6 +46,11 @@ from wavegrasp.schemas import Clock, FrameAck, PlayerStatus, ack_key
 
 log = logging.getLogger("wavegrasp.player")
 POINTS_TOPIC = "/trisect/points"
+TF_STATIC_TOPIC = "/tf_static"
+#: Static transforms are sent again when the recording has not for this long (recording
+#: time): ROS latches them, and a service that (re)starts mid-run needs them. Ours repeat
+#: them every second.
+TF_STATIC_PERIOD_NS = 2_000_000_000
 Pace = Literal["realtime", "fast", "lockstep"]
 
 
@@ -45,6 +64,9 @@ class PlayerSettings(Settings):
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
     wait_timeout_s: float = Field(30.0, gt=0)
+    resume_file: Path | None = Field(None, description="where the player notes how far it "
+                                     "got after each camera frame; a restarted player "
+                                     "resumes from there (same recording only)")
 
 
 class Player(Service):
@@ -58,6 +80,8 @@ class Player(Service):
         self.acked = {name: -1 for name in settings.ack_services}
         self._clock_seq = 0
         self._last_clock_ns: int | None = None
+        self._tf_static: RecordedMessage | None = None
+        self._tf_static_sent_ns = 0
         for name in settings.ack_services:
             self.bus.subscribe(ack_key(name), self.on_ack, FrameAck)
 
@@ -91,6 +115,49 @@ class Player(Service):
             header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate,
             published=self.bus.published()))
 
+    def resume_point(self) -> int | None:
+        """The log time the last run of this player got to on this recording (None: start
+        from the beginning); its sequence numbers carry on from there."""
+        path = self.cfg.resume_file
+        if path is None or not path.exists():
+            return None
+        try:
+            state = json.loads(path.read_text())
+            if state["recording"] != str(self.recording.path.resolve()):
+                return None
+            log_time_ns, published = int(state["log_time_ns"]), state["published"]
+            self.frames, self.messages = int(state["frames"]), int(state["messages"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("%s: not a resume file (%s); playing from the start", path, exc)
+            return None
+        self.bus.continue_sequences(published)
+        log.warning("resuming %s after %d camera frames (log time %d)", self.recording.path,
+                    self.frames, log_time_ns)
+        return log_time_ns
+
+    def note_progress(self, log_time_ns: int) -> None:
+        """Write how far the player got (atomically: a kill never leaves half a file)."""
+        path = self.cfg.resume_file
+        if path is None:
+            return
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps({
+            "recording": str(self.recording.path.resolve()), "log_time_ns": log_time_ns,
+            "frames": self.frames, "messages": self.messages,
+            "published": self.bus.published()}))
+        os.replace(tmp, path)
+
+    def latch_tf_static(self, msg: RecordedMessage) -> None:
+        """Before ``msg``, send the latest static transforms again if they are due."""
+        if msg.topic == TF_STATIC_TOPIC:
+            self._tf_static, self._tf_static_sent_ns = msg, msg.log_time_ns
+            return
+        last = self._tf_static
+        if last is not None and msg.log_time_ns - self._tf_static_sent_ns >= TF_STATIC_PERIOD_NS:
+            self.bus.publish_cdr(last.topic.lstrip("/"), last.cdr, last.msgtype,
+                                 msg.log_time_ns)
+            self._tf_static_sent_ns = msg.log_time_ns
+
     def laggards(self, seq: int) -> str:
         return ", ".join(name for name, acked in self.acked.items() if acked < seq)
 
@@ -116,9 +183,14 @@ class Player(Service):
         first_ns: int | None = None
         start = time.monotonic()
         last_seq = -1
+        resume_ns = self.resume_point()
         for msg in self.recording.messages():
             if self.stopping.is_set():
                 break
+            if resume_ns is not None and msg.log_time_ns <= resume_ns:
+                if msg.topic == TF_STATIC_TOPIC:
+                    self._tf_static = msg
+                continue
             if first_ns is None:
                 first_ns = msg.log_time_ns
             if cfg.pace == "realtime":
@@ -128,12 +200,14 @@ class Player(Service):
             else:
                 self.drain()
             self.publish_clock(msg.log_time_ns, frame=msg.topic == POINTS_TOPIC)
+            self.latch_tf_static(msg)
             seq = self.bus.publish_cdr(msg.topic.lstrip("/"), msg.cdr, msg.msgtype,
                                        msg.log_time_ns)
             self.messages += 1
             if msg.topic == POINTS_TOPIC:
                 self.frames += 1
                 last_seq = seq
+                self.note_progress(msg.log_time_ns)
                 if cfg.pace == "lockstep" and not self.wait_for_ack(seq, cfg.ack_timeout_s):
                     if self.stopping.is_set():
                         break
@@ -146,6 +220,9 @@ class Player(Service):
             log.warning("last frame %d not acknowledged by %s", last_seq,
                         self.laggards(last_seq))
         self.status("finished")
+        if self.cfg.resume_file is not None:  # a finished replay is not resumed
+            with contextlib.suppress(OSError):
+                self.cfg.resume_file.unlink()
         log.info("played %d messages, %d camera frames from %s in %.1f s", self.messages,
                  self.frames, self.recording.path, time.monotonic() - start)
         return 0

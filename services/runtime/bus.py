@@ -103,6 +103,7 @@ class Bus:
         self._own_subscriber: zenoh.Subscriber | None = None
         self._lock = threading.Lock()
         self.alive: set[str] = set()  # kept up to date once watch_alive() is called
+        self.alive_since: dict[str, float] = {}  # monotonic time each token last appeared
 
     # -- publishing ---------------------------------------------------------------------------
     def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
@@ -135,6 +136,12 @@ class Bus:
         """CDR messages published so far, per key."""
         with self._lock:
             return dict(self._seq)
+
+    def continue_sequences(self, published: dict[str, int]) -> None:
+        """Go on from ``published`` CDR messages per key (a restarted source resuming), so
+        sequence numbers and :meth:`published` counts carry on where they were."""
+        with self._lock:
+            self._seq.update({key: int(n) for key, n in published.items()})
 
     def publish_bytes(self, key: str, payload: bytes, encoding: str = JSON) -> None:
         """Publish raw bytes (tools and fault injection); services use the typed calls."""
@@ -230,6 +237,7 @@ class Bus:
                     self.alive.discard(name)
                 else:
                     self.alive.add(name)
+                    self.alive_since[name] = time.monotonic()
 
         self._keep.append(self.session.liveliness().declare_subscriber(
             health_key("*"), on_token, history=True))
@@ -262,6 +270,9 @@ def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:
     """Decode a JSON payload as ``model``; raises :class:`BadMessage` naming key and problem."""
     if delivery.encoding.split(";")[0] not in (JSON, "text/json", "zenoh/bytes"):
         raise BadMessage(f"{delivery.key}: encoding {delivery.encoding!r}, expected {JSON}")
+    if delivery.schema is not None and delivery.schema != model.__name__:
+        raise BadMessage(f"{delivery.key}: encoding names schema {delivery.schema}, expected "
+                         f"{model.__name__}")
     try:
         return model.model_validate_json(delivery.payload)
     except ValidationError as exc:
