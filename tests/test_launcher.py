@@ -124,7 +124,8 @@ def test_ctrl_c_leaves_nothing_behind(long_recording: Path, tmp_path: Path) -> N
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["ended"] == "interrupted"
 
 
-def test_killed_recorder_loses_at_most_a_second_and_goes_on_in_a_new_file(long_recording: Path, tmp_path: Path) -> None:
+def test_killed_recorder_loses_at_most_a_second_and_goes_on_in_a_new_file(
+        long_recording: Path, tmp_path: Path) -> None:
     from wavegrasp.recording_io.reader import RecordingError, open_recording
     from wavegrasp.schemas import FrameAck
 
