@@ -22,8 +22,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections import Counter
-from dataclasses import asdict, dataclass
+from collections import Counter, defaultdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
@@ -79,6 +79,9 @@ class Launcher:
         self.interrupted = threading.Event()
         self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
         self.restarts: dict[str, list[Restart]] = {}
+        self._bad_before: dict[str, Counter[str]] = defaultdict(Counter)  # earlier processes
+        self._bad_now: dict[str, Counter[str]] = {}
+        self._uptime: dict[str, float] = {}
         self._pumps: list[threading.Thread] = []
         self._t0 = time.monotonic()
         self._up_since: dict[str, float] = {}
@@ -120,7 +123,14 @@ class Launcher:
                  + ("success" if msg.success else f"failed, {msg.failure}"))
 
     def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
-        self.stats[msg.service] = msg.model_dump(exclude={"header"})
+        """Keep each service's latest stats; bad-message counts add up across its restarts."""
+        name = msg.service
+        if msg.uptime_s < self._uptime.get(name, 0.0):  # a new process
+            self._bad_before[name].update(self._bad_now[name])
+        self._uptime[name], self._bad_now[name] = msg.uptime_s, Counter(msg.bad)
+        stats = msg.model_dump(exclude={"header"})
+        stats["bad"] = dict(self._bad_before[name] + self._bad_now[name])
+        self.stats[name] = stats
 
     def on_status(self, msg: PlayerStatus, _d: Delivery) -> None:
         self.player_status = msg.model_dump(exclude={"header", "metadata"})
@@ -273,21 +283,31 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+@dataclass
+class Run:
+    """A run being set up or under way: what ``wavegrasp up`` was asked for."""
+
+    args: argparse.Namespace
+    launcher: Launcher
+    env: dict[str, str]
+    out: Path
+    recording: Path
+    started: float = 0.0
+    crashed: list[str] = field(default_factory=list)
+
+
+def prepare(args: argparse.Namespace) -> Run:
+    """Check the arguments and read the compose file; raises ValueError saying what is wrong."""
     root = project_root()
     compose_path = args.compose or (Path.cwd() / "docker-compose.yml")
     if not compose_path.exists():
         compose_path = root / "docker-compose.yml"
     out = (args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")).resolve()
     if (out / "run.mcap").exists():
-        print(f"wavegrasp up: {out} already holds run.mcap: choose another --out",
-              file=sys.stderr)
-        return 2
+        raise ValueError(f"{out} already holds run.mcap: choose another --out")
     recording = args.recording or default_recording()
     if not recording.exists():
-        print(f"wavegrasp up: {recording}: no such recording", file=sys.stderr)
-        return 2
+        raise ValueError(f"{recording}: no such recording")
     env = {
         "WAVEGRASP_ROUTER_HOST": "127.0.0.1", "WAVEGRASP_ROUTER_BIND": "127.0.0.1",
         "WAVEGRASP_ROUTER_PORT": str(free_port()),
@@ -304,43 +324,48 @@ def main(argv: list[str] | None = None) -> int:
                 "WAVEGRASP_VIEWER_WEB_PORT": str(args.viewer_port),
                 "WAVEGRASP_VIEWER_URL": f"rerun+http://127.0.0.1:{grpc_port}/proxy"}
     env["ZENOH_CONNECT"] = f"tcp/127.0.0.1:{env['WAVEGRASP_ROUTER_PORT']}"
-    try:
-        services = load_compose(compose_path, env,
-                                frozenset({"viewer"}) if args.viewer else frozenset())
-    except ValueError as exc:
-        print(f"wavegrasp up: {exc}", file=sys.stderr)
-        return 2
+    services = load_compose(compose_path, env,
+                            frozenset({"viewer"}) if args.viewer else frozenset())
     out.mkdir(parents=True, exist_ok=True)
-    launcher = Launcher(services, env)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: launcher.interrupted.set())
-    started = time.time()
-    launcher.log(f"recording {recording} -> {out} ({args.pace})")
+    return Run(args, Launcher(services, env), env, out, recording)
+
+
+def execute(run: Run) -> str:
+    """Bring the services up, wait for the run's end and stop them; returns why it ended."""
+    launcher, args = run.launcher, run.args
+    run.started = time.time()
+    launcher.log(f"recording {run.recording} -> {run.out} ({args.pace})")
     try:
         why = launcher.wait_end() if launcher.bring_up() else "crashed"
         if launcher.interrupted.is_set():
             why = "interrupted"
         elif args.viewer and "viewer" in launcher.procs:
+            grpc_port = int(run.env["WAVEGRASP_VIEWER_GRPC_PORT"])
             launcher.log(f"{why}; the viewer stays up at "
-                         f"{viewer_url(args.viewer_port, int(env['WAVEGRASP_VIEWER_GRPC_PORT']))}"
-                         " until Ctrl-C")
+                         f"{viewer_url(args.viewer_port, grpc_port)} until Ctrl-C")
             launcher.interrupted.wait()
     finally:
-        crashed = launcher.crashed()
+        run.crashed = launcher.crashed()
         launcher.stop_all()
-        crashed += launcher.killed
+        run.crashed += launcher.killed
+    return why
+
+
+def summarize(run: Run, why: str) -> dict:
+    """Write ``summary.json`` and log the run's end; returns the summary."""
+    launcher = run.launcher
     codes = {n: p.returncode for n, p in launcher.procs.items()}
     summary = {
-        "recording": str(recording), "pace": args.pace, "out": str(out),
-        "ended": why, "crashed": crashed, "exit_codes": codes,
-        "duration_s": round(time.time() - started, 3), "player": launcher.player_status,
+        "recording": str(run.recording), "pace": run.args.pace, "out": str(run.out),
+        "ended": why, "crashed": run.crashed, "exit_codes": codes,
+        "duration_s": round(time.time() - run.started, 3), "player": launcher.player_status,
         "bad_messages": {n: s["bad"] for n, s in launcher.stats.items() if s.get("bad")},
         "services": launcher.stats,
         "restarts": {n: [asdict(r) for r in rs] for n, rs in launcher.restarts.items() if rs},
         "outcomes": launcher.outcomes,
-        "files": sorted(p.name for p in out.glob("run*.mcap")),
+        "files": sorted(p.name for p in run.out.glob("run*.mcap")),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (run.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     bad = sum(sum(b.values()) for b in summary["bad_messages"].values())
     for name, per_key in summary["bad_messages"].items():
         reasons = launcher.stats[name].get("last_bad_reason", {})
@@ -353,7 +378,25 @@ def main(argv: list[str] | None = None) -> int:
     kinds = Counter("success" if o["success"] else o["failure"] for o in launcher.outcomes)
     launcher.log(f"{why}: {launcher.player_status.get('frames', 0)} frames, {bad} bad messages;"
                  f" grasps {dict(kinds) or 'none'};"
-                 f" exit codes {codes}; wrote {out / 'summary.json'}")
+                 f" exit codes {codes}; wrote {run.out / 'summary.json'}")
+    return summary
+
+
+def exit_code(run: Run, why: str) -> int:
     if why == "interrupted":
         return 130
-    return 1 if crashed or why == "crashed" else 0
+    return 1 if run.crashed or why == "crashed" else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        run = prepare(args)
+    except ValueError as exc:
+        print(f"wavegrasp up: {exc}", file=sys.stderr)
+        return 2
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: run.launcher.interrupted.set())
+    why = execute(run)
+    summarize(run, why)
+    return exit_code(run, why)

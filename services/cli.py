@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "viewer": ("wavegrasp.ops.viewer", "rerun's web viewer, fed live by the recorder"),
     "latency": ("wavegrasp.ops.latency", "per-hop and end-to-end latency of a run, from its "
                 "traces"),
+    "faults": ("wavegrasp.ops.faults", "run the pipeline, inject faults (bad input, crashes, "
+               "bad files) and report what survived"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
 }
