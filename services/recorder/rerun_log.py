@@ -147,7 +147,7 @@ class RerunLog:
         self.rec.log("world/prediction/sigma", rr.Ellipsoids3D(
             centers=p[every], half_sizes=np.repeat(np.clip(sigma[every], 0.001, 0.05)[:, None],
                                                    3, axis=1),
-            colors=[60, 120, 255], fill_mode="wireframe"))
+            colors=[60, 120, 255], fill_mode=rr.components.FillMode.MajorWireframe))
 
     def plan(self, msg: GraspPlan) -> None:
         self._at(msg.header.stamp_ns)
