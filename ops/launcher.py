@@ -315,6 +315,7 @@ def prepare(args: argparse.Namespace) -> Run:
         "WAVEGRASP_RECORDING": str(recording.resolve()), "WAVEGRASP_OUT": str(out),
         "WAVEGRASP_PACE": args.pace,
         "WAVEGRASP_PLAYER_RESUME_FILE": str(out / "player-position.json"),
+        "WAVEGRASP_SIM_RESUME_FILE": str(out / "sim-state.json"),
     }
     if args.predictor:
         env["WAVEGRASP_PREDICTOR"] = args.predictor

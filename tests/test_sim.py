@@ -236,3 +236,34 @@ def test_the_service_reshapes_the_object_only_between_attempts(arm, T_world_base
     finally:
         sim.world.close()
         bus.close()
+
+
+def test_a_restarted_sim_goes_on_with_its_trials(arm, T_world_base, tmp_path) -> None:
+    """State noted at each frame survives a crash (no on_stop); the attempt under way when it
+    died is reported failed; a clean stop forgets the state."""
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    state = tmp_path / "sim.json"
+    settings = SimSettings(service="sim", trials=5, attempts=3, resume_file=state)
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    try:
+        first = SimService(settings, bus=bus)
+        first.world = SimWorld(arm, T_world_base, CAN)
+        first.executor = Executor(first.world)
+        first.trial, first.attempt, first._executing = 2, 1, "p7"
+        first.finish_frame(1)  # notes the state; then the process is killed: no on_stop
+        first.world.close()
+        second = SimService(settings, bus=bus)
+        assert (second.trial, second.attempt) == (2, 1)
+        assert second.counters["attempts cut short by a restart"] == 1
+        (cut,) = second._results
+        assert cut.plan_id == "p7" and not cut.success and cut.failure == "other"
+        second.on_stop()
+        assert not state.exists()
+        state.write_text("{not json")
+        third = SimService(settings, bus=bus)  # an unreadable state: start afresh
+        assert (third.trial, third.attempt) == (0, 0)
+    finally:
+        bus.close()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 import numpy as np
 from pydantic import Field
@@ -26,6 +27,7 @@ from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose, decod
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import (
     ArmState,
@@ -62,6 +64,8 @@ class SimSettings(Settings):
                          "seabed, which the arm must not touch")
     stop_after_trials: bool = Field(False, description="exit once the last trial has ended "
                                     "(compose labels the sim as ending the run)")
+    resume_file: Path | None = Field(None, description="where the sim notes its trial and "
+                                     "attempt; restarted after a crash, it goes on from there")
 
 
 class SimService(Service):
@@ -89,6 +93,9 @@ class SimService(Service):
         self._go: Attempt | None = None  # approved this frame, not started yet
         self._plans_flow = False  # a decision has come: the trials can begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
+        self.state = StateFile(settings.resume_file)
+        self._saved: dict | None = None
+        self.resume(self.state.load())
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe(TRUTH_KEY, self.on_truth)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
@@ -97,6 +104,30 @@ class SimService(Service):
                            MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+
+    def resume(self, state: dict | None) -> None:
+        """Go on with the trials of a sim that crashed; an attempt it was executing failed."""
+        if state is None:
+            return
+        try:
+            self.trial, self.attempt = int(state["trial"]), int(state["attempt"])
+            self._plans_flow = bool(state["plans_flow"])
+            executing = state["executing"]
+        except (KeyError, TypeError, ValueError) as exc:
+            log.warning("%s: not a sim state (%s); starting afresh", self.state.path, exc)
+            return
+        log.warning("resuming at trial %d after %d attempts", self.trial, self.attempt)
+        if executing:
+            self.counters["attempts cut short by a restart"] += 1
+            self._results.append(Result(str(executing), False, "other", {
+                "reason": "the sim restarted during this attempt"}))
+
+    def note_state(self) -> None:
+        state = {"trial": self.trial, "attempt": self.attempt, "executing": self._executing,
+                 "plans_flow": self._plans_flow}
+        if state != self._saved:
+            self.state.save(state)
+            self._saved = state
 
     # --- inputs -------------------------------------------------------------------------
 
@@ -277,8 +308,10 @@ class SimService(Service):
             joint_names=list(self.arm.joint_names), positions=q.tolist(),
             velocities=qd.tolist(), jaw_opening_m=self.world.jaw_opening(),
             executing_plan_id=self._executing))
+        self.note_state()
 
     def on_stop(self) -> None:
+        self.state.clear()  # stopped, not crashed: the next run starts afresh
         if self.world is not None:
             self.world.close()
 
