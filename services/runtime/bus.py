@@ -56,9 +56,27 @@ class BadMessage(ValueError):
     """A payload that cannot be used; the text says what is wrong with it."""
 
 
+def config_file(settings: Settings) -> str | None:
+    """The zenoh config file ``settings.zenoh_config`` names for this service, if any."""
+    if not settings.zenoh_config:
+        return None
+    return settings.zenoh_config.replace("{service}", settings.service)
+
+
 def zenoh_config(settings: Settings) -> zenoh.Config:
-    """Zenoh config with explicit endpoints, multicast scouting and shared memory off."""
-    conf = zenoh.Config()
+    """Zenoh config: the file from ``ZENOH_CONFIG`` if any (credentials, access control, TLS),
+    then our mode and explicit endpoints, multicast scouting and shared memory off on top.
+
+    Raises
+    ------
+    ValueError
+        naming the file, if it cannot be read or is not a zenoh config.
+    """
+    path = config_file(settings)
+    try:
+        conf = zenoh.Config.from_file(path) if path else zenoh.Config()
+    except (zenoh.ZError, OSError) as exc:
+        raise ValueError(f"{settings.service}: {path}: not a usable zenoh config: {exc}") from None
     conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
     if settings.zenoh_mode != "router":
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
@@ -79,8 +97,10 @@ def open_session(settings: Settings) -> zenoh.Session:
             if settings.zenoh_mode == "router" or time.monotonic() > deadline:
                 where = settings.zenoh_listen if settings.zenoh_mode == "router" else (
                     settings.zenoh_connect)
+                path = config_file(settings)
+                using = f" with {path}" if path else ""
                 raise ConnectionError(f"{settings.service}: cannot open zenoh session on "
-                                      f"{', '.join(where)}: {exc}") from None
+                                      f"{', '.join(where)}{using}: {exc}") from None
             time.sleep(0.2)
 
 

@@ -1,7 +1,9 @@
 """Settings from environment variables, the way compose and the launcher pass them.
 
 Zenoh endpoints come from ``ZENOH_CONNECT`` / ``ZENOH_LISTEN`` (comma-separated, e.g.
-``tcp/router:7447``); every other field ``f`` of a settings model comes from ``WAVEGRASP_F``.
+``tcp/router:7447``) and a zenoh config file from ``ZENOH_CONFIG`` (e.g.
+``ops/zenoh/acl/{service}.json5``); every other field ``f`` of a settings model comes from
+``WAVEGRASP_F``.
 Command-line options given to a service override the environment.
 """
 
@@ -33,6 +35,9 @@ class Settings(BaseModel):
     zenoh_connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER])
     zenoh_listen: list[str] = Field(default_factory=list)
     zenoh_mode: Literal["client", "peer", "router"] = "client"
+    zenoh_config: str | None = Field(
+        None, description="zenoh JSON5 file (credentials, access control, TLS) applied under "
+        "the settings above; '{service}' in it becomes the service's name")
     log_level: str = "INFO"
     clock: Literal["recording", "wall"] = Field(
         "recording", description="follow wavegrasp/clock (replays) or the wall (live vehicle)")
