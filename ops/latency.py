@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
 
+from wavegrasp.recording_io.reader import RecordingError, TruncatedRecording, read_mcap
 from wavegrasp.runtime.trace import hop_times_ms
 from wavegrasp.schemas import Hop
 
@@ -31,6 +31,7 @@ CHAIN_KEY = "wavegrasp/gate/decision"
 OBSERVATION_KEY = "wavegrasp/perception/object"
 PLAN_KEY = "wavegrasp/planner/plan"
 POINTS_TOPIC = "/trisect/points"
+TOPICS = (POINTS_TOPIC, CHAIN_KEY, OBSERVATION_KEY, PLAN_KEY)
 NS_PER_MS = 1e6
 
 
@@ -48,6 +49,7 @@ class Latency:
     frame_interval_ms: float = float("nan")
     approvals_ms: list[float] = field(default_factory=list)  # capture -> go
     approval_leads_ms: list[float] = field(default_factory=list)  # capture -> grasp time
+    warnings: list[str] = field(default_factory=list)  # e.g. a run file cut short
 
     def table(self) -> list[dict[str, float | str | int]]:
         rows = [_row(name, values) for name, values in self.hops.items()]
@@ -61,7 +63,7 @@ class Latency:
                 "frame_interval_ms": self.frame_interval_ms,
                 "approvals": len(self.approvals_ms),
                 "capture_to_approval_ms": _row("", self.approvals_ms),
-                "plan_lead_ms": _row("", self.approval_leads_ms)}
+                "plan_lead_ms": _row("", self.approval_leads_ms), "warnings": self.warnings}
 
 
 def _row(name: str, values: list[float]) -> dict[str, float | str | int]:
@@ -74,36 +76,42 @@ def _row(name: str, values: list[float]) -> dict[str, float | str | int]:
 
 
 def read_latency(path: Path) -> Latency:
-    """Read ``path`` (a ``run.mcap``). Raises ValueError if it is no MCAP or has no traces."""
+    """Read ``path`` (a ``run.mcap``). Raises ValueError if it is no MCAP, is corrupt or has no
+    traces. A file cut short (a recorder that was killed) is read up to its last complete chunk,
+    with a warning in ``warnings``."""
     lat = Latency(Path(path))
     observed: set[int] = set()
     point_seqs: set[int] = set()
     point_stamps: list[int] = []
     plans: dict[str, dict] = {}
+    topic, cut = "", ""
     try:
-        with open(path, "rb") as f:
-            for _schema, channel, message in make_reader(f).iter_messages():
-                if channel.topic == POINTS_TOPIC:
-                    point_seqs.add(message.sequence)
-                    point_stamps.append(message.log_time)
-                    continue
-                if channel.message_encoding != "json":
-                    continue
-                if channel.topic not in (CHAIN_KEY, OBSERVATION_KEY, PLAN_KEY):
-                    continue
+        for _schema, channel, message in read_mcap(path, TOPICS):
+            topic = channel.topic
+            if topic == POINTS_TOPIC:
+                point_seqs.add(message.sequence)
+                point_stamps.append(message.log_time)
+            elif channel.message_encoding == "json":
                 msg = json.loads(message.data)
-                if channel.topic == OBSERVATION_KEY:
+                if topic == OBSERVATION_KEY:
                     observed.add(msg["header"]["seq"])
-                elif channel.topic == PLAN_KEY:
+                elif topic == PLAN_KEY:
                     plans[msg["plan_id"]] = msg
                 else:
                     _add_decision(lat, msg, plans.get(msg["plan_id"]))
-    except (OSError, ValueError, KeyError) as exc:
+    except TruncatedRecording as exc:
+        lat.warnings.append(f"{exc}; the figures are of those")
+        cut = str(exc).removeprefix(f"{path}: ")
+    except RecordingError as exc:
+        raise ValueError(str(exc)) from None
+    except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
-    except Exception as exc:  # mcap raises its own types on a file that is not MCAP
-        raise ValueError(f"{path}: not a readable MCAP file: {exc}") from None
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: a malformed {topic} message: {type(exc).__name__}: "
+                         f"{exc}") from None
     if not lat.end_to_end:
-        raise ValueError(f"{path}: no {CHAIN_KEY} messages with a trace")
+        raise ValueError(f"{path}: no {CHAIN_KEY} messages with a trace"
+                         + (f" ({cut})" if cut else ""))
     lat.frames_observed = len(observed)
     if point_seqs:  # the clouds were recorded: count what perception never reported
         lat.frames_published = len(point_seqs)
@@ -130,6 +138,7 @@ def merge(runs: list[Latency]) -> Latency:
         out.frames_published += r.frames_published
         out.frames_observed += r.frames_observed
         out.frames_dropped += r.frames_dropped
+        out.warnings.extend(r.warnings)
     intervals = [r.frame_interval_ms for r in runs if np.isfinite(r.frame_interval_ms)]
     out.frame_interval_ms = float(np.median(intervals)) if intervals else float("nan")
     return out
@@ -209,9 +218,11 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         lat = merge([read_latency(run) for run in a.runs])
-    except ValueError as exc:
-        print(f"wavegrasp latency: {exc}", file=sys.stderr)
+    except ValueError as exc:  # one line, whatever a library put in its message
+        print(f"wavegrasp latency: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    for warning in lat.warnings:
+        print(f"wavegrasp latency: warning: {warning}", file=sys.stderr)
     print(format_table(lat))
     if a.out:
         a.out.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,7 @@ from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.recording_io.reader import RecordingError, open_for_replay
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
@@ -306,8 +307,12 @@ def prepare(args: argparse.Namespace) -> Run:
     if (out / "run.mcap").exists():
         raise ValueError(f"{out} already holds run.mcap: choose another --out")
     recording = args.recording or default_recording()
-    if not recording.exists():
-        raise ValueError(f"{recording}: no such recording")
+    try:  # before anything starts: a bad file gets one line, not a pipeline that fails
+        problem = open_for_replay(recording).problem
+    except RecordingError as exc:
+        raise ValueError(str(exc)) from None
+    if problem:  # e.g. cut short: the player replays what is readable
+        print(f"wavegrasp up: warning: {recording}: {problem}", file=sys.stderr)
     env = {
         "WAVEGRASP_ROUTER_HOST": "127.0.0.1", "WAVEGRASP_ROUTER_BIND": "127.0.0.1",
         "WAVEGRASP_ROUTER_PORT": str(free_port()),

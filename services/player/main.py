@@ -16,15 +16,18 @@ far it got; started again on the same recording (compose restarts it after a cra
 after that frame, its sequence numbers carrying on. Static transforms are sent again every
 2 s of recording time when the recording does not repeat them (a ROS bag latches them once),
 so a service that restarts mid-run gets them.
+
+A file that is no recording, or none the pipeline can run on (no ``/trisect/points`` point
+clouds), gets one line on stderr naming it and the problem, and exit code 2. One that can be
+read only in part (cut short, as a killed recorder leaves it, or with a corrupt chunk) is
+played up to where it breaks, with a warning naming the file and the problem; the replay then
+ends as finished (exit 0): what could be played was.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -36,11 +39,12 @@ from wavegrasp.recording_io.reader import (
     RecordedMessage,
     Recording,
     RecordingError,
-    open_recording,
+    open_for_replay,
 )
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import Clock, FrameAck, PlayerStatus, ack_key
 
@@ -81,6 +85,7 @@ class Player(Service):
         self._clock_seq = 0
         self._last_clock_ns: int | None = None
         self._tf_static: RecordedMessage | None = None
+        self.state = StateFile(settings.resume_file)
         self._tf_static_sent_ns = 0
         for name in settings.ack_services:
             self.bus.subscribe(ack_key(name), self.on_ack, FrameAck)
@@ -118,17 +123,15 @@ class Player(Service):
     def resume_point(self) -> int | None:
         """The log time the last run of this player got to on this recording (None: start
         from the beginning); its sequence numbers carry on from there."""
-        path = self.cfg.resume_file
-        if path is None or not path.exists():
+        state = self.state.load()
+        if state is None or state.get("recording") != str(self.recording.path.resolve()):
             return None
         try:
-            state = json.loads(path.read_text())
-            if state["recording"] != str(self.recording.path.resolve()):
-                return None
-            log_time_ns, published = int(state["log_time_ns"]), state["published"]
+            log_time_ns, published = int(state["log_time_ns"]), dict(state["published"])
             self.frames, self.messages = int(state["frames"]), int(state["messages"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("%s: not a resume file (%s); playing from the start", path, exc)
+        except (KeyError, TypeError, ValueError) as exc:
+            log.warning("%s: not a player state (%s); playing from the start",
+                        self.state.path, exc)
             return None
         self.bus.continue_sequences(published)
         log.warning("resuming %s after %d camera frames (log time %d)", self.recording.path,
@@ -136,16 +139,9 @@ class Player(Service):
         return log_time_ns
 
     def note_progress(self, log_time_ns: int) -> None:
-        """Write how far the player got (atomically: a kill never leaves half a file)."""
-        path = self.cfg.resume_file
-        if path is None:
-            return
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps({
-            "recording": str(self.recording.path.resolve()), "log_time_ns": log_time_ns,
-            "frames": self.frames, "messages": self.messages,
-            "published": self.bus.published()}))
-        os.replace(tmp, path)
+        self.state.save({"recording": str(self.recording.path.resolve()),
+                         "log_time_ns": log_time_ns, "frames": self.frames,
+                         "messages": self.messages, "published": self.bus.published()})
 
     def latch_tf_static(self, msg: RecordedMessage) -> None:
         """Before ``msg``, send the latest static transforms again if they are due."""
@@ -220,20 +216,26 @@ class Player(Service):
             log.warning("last frame %d not acknowledged by %s", last_seq,
                         self.laggards(last_seq))
         self.status("finished")
-        if self.cfg.resume_file is not None:  # a finished replay is not resumed
-            with contextlib.suppress(OSError):
-                self.cfg.resume_file.unlink()
+        self.state.clear()  # a finished replay is not resumed
         log.info("played %d messages, %d camera frames from %s in %.1f s", self.messages,
                  self.frames, self.recording.path, time.monotonic() - start)
         return 0
 
+    def on_stop(self) -> None:
+        self.state.clear()  # stopped, not crashed: the next run starts from the beginning
+
     def serve(self) -> int:
+        if self.recording.problem:  # e.g. cut short: play what is there, then fail at the cut
+            log.warning("%s: %s; playing its %s readable messages", self.recording.path,
+                        self.recording.problem, self.recording.message_count)
         try:
             return self.play()
-        except RecordingError as exc:
-            self.status("failed", str(exc))
-            print(f"wavegrasp player: {exc}", file=sys.stderr)
-            return 2
+        except RecordingError as exc:  # it breaks part-way: what came before was played
+            self.status("finished", str(exc))
+            self.state.clear()
+            print(f"wavegrasp player: warning: {exc}; played {self.frames} camera frames",
+                  file=sys.stderr)
+            return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -248,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = PlayerSettings.from_env(
             "player", pace=args.pace,
             wait_for=args.wait_for.split(",") if args.wait_for else None)
-        recording = open_recording(args.recording)
+        recording = open_for_replay(args.recording)
     except (ValueError, RecordingError) as exc:
         print(f"wavegrasp player: {exc}", file=sys.stderr)
         return 2

@@ -11,10 +11,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rosbags.highlevel import AnyReader
+from rosbags.rosbag1.reader import Header, RecordType
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from .recording import RecordedMessage, Recording, RecordingError, describe
+from .recording import (
+    RecordedMessage,
+    Recording,
+    RecordingError,
+    TruncatedRecording,
+    describe,
+)
 from .typestore import ros1_typestore, ros2_typestore
 
 KIND = {"ros1": "ROS 1 bag", "ros2": "ROS 2 bag"}
@@ -30,6 +37,22 @@ def cdr_typestore(reader: AnyReader) -> Typestore:
     return store
 
 
+def ros1_truncation(path: Path) -> str | None:
+    """Say how ROS 1 bag `path` is cut short if its header places the index past its end (the
+    index is written last); None if it is not, or the header cannot be read."""
+    try:
+        with path.open("rb") as f:
+            f.readline()
+            index_pos = Header.read(f, RecordType.BAGHEADER).get_uint64("index_pos")
+    except Exception:
+        return None
+    size = path.stat().st_size
+    if index_pos < size:
+        return None
+    return (f"truncated ROS 1 bag: it ends at byte {size}, before its index (due at byte "
+            f"{index_pos}); `rosbag reindex` can rebuild the index of what is left")
+
+
 @dataclass
 class BagRecording(Recording):
     """A ROS 1 bag (`format` 'ros1') or ROS 2 bag folder ('ros2'); metadata is always empty."""
@@ -39,6 +62,9 @@ class BagRecording(Recording):
         return AnyReader([self.path], default_typestore=store)
 
     def _fail(self, err: Exception) -> RecordingError:
+        cut = ros1_truncation(self.path) if self.format == "ros1" else None
+        if cut:
+            return TruncatedRecording(f"{self.path}: {cut}")
         return RecordingError(f"{self.path}: cannot read the {KIND[self.format]}: {describe(err)}")
 
     @classmethod

@@ -1,7 +1,8 @@
 """Open a recording (MCAP, ROS 1 bag or ROS 2 bag folder) and iterate its messages as CDR.
 
-Failures of any kind surface as `RecordingError`, whose message names the file and the problem;
-a truncated MCAP yields its complete messages first (see `mcap_source`).
+Failures of any kind surface as `RecordingError`, whose message (one line) names the file and the
+problem; a truncated MCAP yields its complete messages first, then raises `TruncatedRecording`
+(see `mcap_read`, whose `read_mcap` also reads any MCAP's raw messages that way).
 """
 
 from __future__ import annotations
@@ -10,30 +11,23 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from .bag_source import BagRecording
-from .mcap_source import MAGIC, McapRecording
-from .recording import CONTRACT_TOPICS, RecordedMessage, Recording, RecordingError
+from .mcap_read import MAGIC, check_mcap, read_mcap
+from .mcap_source import McapRecording
+from .recording import (
+    CONTRACT_TOPICS,
+    NOT_A_RECORDING,
+    ROS1_MAGIC,
+    RecordedMessage,
+    Recording,
+    RecordingError,
+    TruncatedRecording,
+    check_path,
+)
 
-__all__ = ["CONTRACT_TOPICS", "RecordedMessage", "Recording", "RecordingError", "open_recording"]
+__all__ = ["CONTRACT_TOPICS", "RecordedMessage", "Recording", "RecordingError",
+           "TruncatedRecording", "check_path", "open_for_replay", "open_recording", "read_mcap"]
 
-ROS1_MAGIC = b"#ROSBAG V2.0"
-NOT_A_RECORDING = "not a recording: expected an MCAP file, a ROS 1 .bag or a ROS 2 bag folder"
-
-
-def check_path(path: Path) -> bytes:
-    """Return the first bytes of file `path` ('' for a folder), or raise RecordingError if it is
-    missing, unreadable or empty."""
-    if not path.exists():
-        raise RecordingError(f"{path}: no such file")
-    if path.is_dir():
-        return b""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(len(ROS1_MAGIC))
-    except OSError as err:
-        raise RecordingError(f"{path}: cannot read: {err.strerror}") from None
-    if not head:
-        raise RecordingError(f"{path}: empty file (0 bytes), {NOT_A_RECORDING}")
-    return head
+CAMERA = ("/trisect/points", "sensor_msgs/msg/PointCloud2")  # what the pipeline runs on
 
 
 def open_recording(
@@ -65,14 +59,30 @@ def open_recording(
     head = check_path(path)
     if path.is_dir():
         if not (path / "metadata.yaml").is_file():
-            raise RecordingError(f"{path}: folder without metadata.yaml, {NOT_A_RECORDING}")
+            files = sorted(p.name for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+            has = f" (it holds {', '.join(files[:3])})" if files else ""
+            raise RecordingError(f"{path}: folder without metadata.yaml, {NOT_A_RECORDING}{has}")
         return BagRecording.open(path, "ros2", wanted)
     if head.startswith(MAGIC):
         return McapRecording.open(path, wanted)
+    if len(head) < len(MAGIC) and MAGIC.startswith(head):
+        check_mcap(path)  # says where it is cut
     if path.suffix == ".bag" or head == ROS1_MAGIC:
         if path.suffix != ".bag":
             raise RecordingError(f"{path}: a ROS 1 bag must be named *.bag to be read")
+        if head != ROS1_MAGIC:
+            raise RecordingError(f"{path}: not a ROS 1 bag (bad magic: starts with "
+                                 f"{head!r}, not {ROS1_MAGIC!r})")
         return BagRecording.open(path, "ros1", wanted)
     if path.suffix == ".mcap":
         raise RecordingError(f"{path}: not an MCAP file (bad magic)")
     raise RecordingError(f"{path}: {NOT_A_RECORDING}")
+
+
+def open_for_replay(path: str | Path) -> Recording:
+    """`open_recording` with the contract's topics, and require the camera's point clouds (what
+    `wavegrasp player` and `wavegrasp up` replay). Raises RecordingError naming the file and what
+    is wrong; a recording that can be read only in part opens with `problem` set."""
+    recording = open_recording(path)
+    recording.require(*CAMERA)
+    return recording

@@ -9,16 +9,45 @@ from typing import Literal
 
 CONTRACT_TOPICS = ("/trisect/points", "/tf_static", "/groundtruth/object")
 Format = Literal["mcap", "ros1", "ros2"]
+ROS1_MAGIC = b"#ROSBAG V2.0"
+NOT_A_RECORDING = "not a recording: expected an MCAP file, a ROS 1 .bag or a ROS 2 bag folder"
+MAX_DETAIL = 300  # characters of a library's error message quoted in ours
 
 
 class RecordingError(Exception):
-    """A recording cannot be read; the message names the file and what is wrong."""
+    """A recording cannot be read (or not all of it); the message, one line, names the file and
+    what is wrong."""
+
+
+class TruncatedRecording(RecordingError):
+    """The recording ends early (its writer was stopped mid-write); raised after every message
+    before the cut was read."""
 
 
 def describe(err: BaseException) -> str:
-    """Return 'ExceptionType: message' (or just the type) for a library's exception."""
-    text = str(err)
+    """Return 'ExceptionType: message' (or just the type) for a library's exception, on one
+    line and at most about MAX_DETAIL characters."""
+    text = " ".join(str(err).split())
+    if len(text) > MAX_DETAIL:
+        text = text[:MAX_DETAIL] + "..."
     return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def check_path(path: Path) -> bytes:
+    """Return the first bytes of file `path` (b'' for a folder), or raise RecordingError if it is
+    missing, unreadable or empty."""
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file")
+    if path.is_dir():
+        return b""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(ROS1_MAGIC))
+    except OSError as err:
+        raise RecordingError(f"{path}: cannot read: {err.strerror}") from None
+    if not head:
+        raise RecordingError(f"{path}: empty file (0 bytes), {NOT_A_RECORDING}")
+    return head
 
 
 @dataclass(frozen=True)
@@ -60,6 +89,9 @@ class Recording:
         Messages on those topics, when known without reading the whole file.
     start_ns, end_ns : int or None
         First and last log time in the file (all topics), nanoseconds, when known.
+    problem : str or None
+        What is wrong with a file that can still be read in part (e.g. truncated), found when it
+        was opened; `messages` raises RecordingError where it stops if messages were lost.
     """
 
     path: Path
@@ -69,6 +101,7 @@ class Recording:
     message_count: int | None = None
     start_ns: int | None = None
     end_ns: int | None = None
+    problem: str | None = None
     _msgdefs: dict[str, str] = field(default_factory=dict, repr=False)
 
     def msgdef(self, msgtype: str) -> str:
@@ -82,10 +115,20 @@ class Recording:
         """Yield the requested topics' messages in log-time order."""
         raise NotImplementedError
 
-    def check_topics(self, requested: tuple[str, ...] | None, why: str | None = None) -> None:
+    def check_topics(self, requested: tuple[str, ...] | None, why: str | None = None,
+                     found: str | None = None) -> None:
         """Raise RecordingError if none of the `requested` topics (None: any) is present; `why`
-        (e.g. the file's truncation) is appended to the message."""
+        (e.g. the file's truncation) and `found` (what the file has instead) are added."""
         if not self.topics:
             wanted = ", ".join(requested) if requested else "any ROS 2 (CDR) topic"
             why = f" ({why})" if why else ""
-            raise RecordingError(f"{self.path}: contains none of the topics {wanted}{why}")
+            found = f"; it has {found}" if found else ""
+            raise RecordingError(f"{self.path}: contains none of the topics {wanted}{why}{found}")
+
+    def require(self, topic: str, msgtype: str) -> None:
+        """Raise RecordingError unless `topic` is present with type `msgtype`."""
+        if self.topics.get(topic) == msgtype:
+            return
+        has = (f"it has {topic} as {self.topics[topic]}" if topic in self.topics else
+               f"it has only {', '.join(sorted(self.topics))}")
+        raise RecordingError(f"{self.path}: no {topic} ({msgtype}) to replay: {has}")
