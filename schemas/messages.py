@@ -7,38 +7,55 @@ Positions are metres in frame ``world`` (z up) unless a field says otherwise.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+INT64_MAX = 2**63 - 1
+#: Metres: a coordinate farther out is corrupt data, not a place (no grasp scene is 10 km wide).
+MAX_COORDINATE_M = 1e4
+
+#: A time in ns, as ROS, MCAP and numpy hold it: an int64 >= 0.
+Nanoseconds = Annotated[int, Field(ge=0, le=INT64_MAX)]
+#: A sequence number or a count: an int64 >= 0.
+Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
+#: A coordinate, metres.
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
 
 
 class Message(BaseModel):
-    """Base of every message: unknown fields are kept, so newer senders stay readable."""
+    """Base of every message: unknown fields are kept, so newer senders stay readable.
 
-    model_config = ConfigDict(extra="allow")
+    Floats must be finite (JSON ``NaN`` / ``Infinity`` and numbers too big for a double are
+    refused), times and counts fit an int64, coordinates are within ``MAX_COORDINATE_M``.
+    """
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
 
 
 class Hop(Message):
     """One service's passage: when it received the input and when it sent its output."""
 
     service: str
-    recv_ns: int = Field(description="wall clock, ns, when the input arrived")
-    sent_ns: int = Field(0, description="wall clock, ns, when the output left (0 until sent)")
+    recv_ns: Nanoseconds = Field(description="wall clock, ns, when the input arrived")
+    sent_ns: Nanoseconds = Field(
+        0, description="wall clock, ns, when the output left (0 until sent)")
 
 
 class Header(Message):
     """Sequence, capture stamp, frame and the trace of every hop the data went through."""
 
-    seq: int = 0
-    stamp_ns: int = Field(0, description="recording clock, ns: capture time of the source frame")
+    seq: Count = 0
+    stamp_ns: Nanoseconds = Field(
+        0, description="recording clock, ns: capture time of the source frame")
     frame_id: str = "world"
     trace: list[Hop] = Field(default_factory=list)
 
 
 class Vec3(Message):
-    x: float
-    y: float
-    z: float
+    x: Coordinate
+    y: Coordinate
+    z: Coordinate
 
 
 class Quaternion(Message):
@@ -61,15 +78,16 @@ class ObjectObservation(Message):
 
     header: Header
     centroid: Vec3 | None = None
-    points_used: int = 0
+    points_used: Count = 0
     quality: float = Field(0.0, ge=0.0, le=1.0, description="0 = unusable, 1 = best")
-    sigma_m: float | None = Field(None, description="1-sigma centroid uncertainty, metres")
+    sigma_m: float | None = Field(None, ge=0.0,
+                                  description="1-sigma centroid uncertainty, metres")
     reason: str | None = None
     shape: Literal["sphere", "cylinder"] | None = None
     axis: Vec3 | None = Field(None, description="unit symmetry axis, world (cylinder)")
-    radius_m: float | None = None
-    length_m: float | None = None
-    fit_rms_m: float | None = Field(None, description="RMS distance of points to the shape")
+    radius_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
+    length_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
+    fit_rms_m: float | None = Field(None, ge=0.0, description="RMS distance of points to the shape")
 
 
 class ObjectMesh(Message):
@@ -84,18 +102,18 @@ class ObjectMesh(Message):
     shape: Literal["sphere", "cylinder"]
     vertices_b64: str
     triangles_b64: str
-    vertex_count: int
-    triangle_count: int
+    vertex_count: Count
+    triangle_count: Count
     volume_m3: float
-    frames: int = Field(description="camera frames accumulated into the mesh")
+    frames: Count = Field(description="camera frames accumulated into the mesh")
 
 
 class PredictionSample(Message):
-    t_ns: int = Field(description="recording clock, ns")
-    x: float
-    y: float
-    z: float
-    sigma: float = Field(description="1-sigma position error expected at t_ns, metres")
+    t_ns: Nanoseconds = Field(description="recording clock, ns")
+    x: Coordinate
+    y: Coordinate
+    z: Coordinate
+    sigma: float = Field(ge=0.0, description="1-sigma position error expected at t_ns, metres")
 
 
 class MotionPrediction(Message):
@@ -103,23 +121,31 @@ class MotionPrediction(Message):
 
     header: Header
     model: str
-    period_s: float
+    period_s: float = Field(gt=0.0)
     samples: list[PredictionSample]
     parameters: dict[str, float] = Field(default_factory=dict)
     warm: bool = Field(True, description="False while the model is still warming up")
 
+    @field_validator("samples")
+    @classmethod
+    def check_sample_times(cls, samples: list[PredictionSample]) -> list[PredictionSample]:
+        for k in range(1, len(samples)):
+            if samples[k].t_ns <= samples[k - 1].t_ns:
+                raise ValueError(f"samples not strictly increasing in t_ns at sample {k}")
+        return samples
+
 
 class JointSample(Message):
-    t_ns: int
+    t_ns: Nanoseconds
     positions: list[float] = Field(description="radians (revolute), metres (jaw)")
     velocities: list[float] = Field(default_factory=list)
 
 
 class CartesianSample(Message):
-    t_ns: int
-    x: float
-    y: float
-    z: float
+    t_ns: Nanoseconds
+    x: Coordinate
+    y: Coordinate
+    z: Coordinate
 
 
 class GraspPlan(Message):
@@ -127,8 +153,8 @@ class GraspPlan(Message):
 
     header: Header
     plan_id: str
-    t_start_ns: int
-    t_grasp_ns: int
+    t_start_ns: Nanoseconds
+    t_grasp_ns: Nanoseconds
     grasp: Pose
     approach: Vec3 = Field(description="unit approach direction, world")
     joint_names: list[str] = Field(default_factory=list)
@@ -137,10 +163,10 @@ class GraspPlan(Message):
     confidence: float = 0.0
     waypoints: list[Vec3] = Field(default_factory=list,
                                   description="P_init, the P_i, the pre-grasp point, P_f; world")
-    t_final_ns: int | None = Field(None, description="when the final move into P_f begins")
+    t_final_ns: Nanoseconds | None = Field(None, description="when the final move into P_f begins")
     jaw_preshape_m: float | None = Field(
         None, description="the jaw's opening for the final move, a little wider than the object")
-    t_close_ns: int | None = Field(
+    t_close_ns: Nanoseconds | None = Field(
         None, description="when the jaw starts closing, so it meets the object at t_grasp_ns")
     candidates: list[Pose] = Field(
         default_factory=list, description="grasp poses checked in full for this plan, in "
@@ -153,7 +179,7 @@ class GateDecision(Message):
     header: Header
     plan_id: str
     go: bool
-    mean_error_m: float | None
+    mean_error_m: float | None = Field(ge=0.0)
     threshold_m: float
     window_s: float
     reason: str = ""
@@ -167,8 +193,8 @@ class GraspOutcome(Message):
 
     header: Header
     plan_id: str
-    trial: int
-    attempt: int
+    trial: Count
+    attempt: Count
     success: bool
     failure: FailureKind | None = None
     evidence: dict[str, float | str | bool] = Field(default_factory=dict)
@@ -189,8 +215,9 @@ class Clock(Message):
     """``wavegrasp/clock``: the recording's time, published by the player."""
 
     header: Header
-    rate: float = Field(1.0, description="recording seconds per wall second; 0 = as fast")
-    published: dict[str, int] = Field(
+    rate: float = Field(1.0, ge=0.0,
+                        description="recording seconds per wall second; 0 = as fast")
+    published: dict[str, Count] = Field(
         default_factory=dict, description="CDR messages the player has published so far, per "
         "key: a service that needs all of them before it finishes a frame waits for them")
 
@@ -203,7 +230,7 @@ class FrameAck(Message):
 
     header: Header
     service: str
-    frame_seq: int
+    frame_seq: Count
 
 
 class PlayerStatus(Message):
@@ -213,8 +240,8 @@ class PlayerStatus(Message):
     state: Literal["starting", "playing", "finished", "failed"]
     recording: str
     pace: str
-    frames: int = 0
-    messages: int = 0
+    frames: Count = 0
+    messages: Count = 0
     metadata: dict[str, str] = Field(default_factory=dict)
     error: str | None = None
 
@@ -225,8 +252,9 @@ class ServiceStats(Message):
     header: Header
     service: str
     subscriptions: list[str] = Field(default_factory=list)
-    received: dict[str, int] = Field(default_factory=dict)
-    bad: dict[str, int] = Field(default_factory=dict)
+    received: dict[str, Count] = Field(default_factory=dict)
+    bad: dict[str, Count] = Field(default_factory=dict)
     last_bad_reason: dict[str, str] = Field(default_factory=dict)
-    counters: dict[str, int] = Field(default_factory=dict, description="service-specific counts")
-    uptime_s: float = 0.0
+    counters: dict[str, Count] = Field(default_factory=dict,
+                                       description="service-specific counts")
+    uptime_s: float = Field(0.0, ge=0.0)

@@ -56,3 +56,23 @@ def check_fraction(name: str, value: float) -> None:
     """Raise ValueError unless 0 <= `value` < 1."""
     if not 0.0 <= value < 1.0:
         raise ValueError(f"{name} must be in [0, 1), got {value!r}")
+
+
+class StampOrder:
+    """The newest stamp of a stream, to refuse messages that repeat it or come from before it.
+
+    A stamp more than ``restart_s`` older than the newest starts the stream over (a replay
+    begun again, a clock reset): it is taken and becomes the newest.
+    """
+
+    def __init__(self, restart_s: float) -> None:
+        self.restart_ns = round(restart_s * 1e9)
+        self.last_ns: int | None = None
+
+    def check(self, stamp_ns: int) -> None:
+        """Take ``stamp_ns``; ValueError if it is a duplicate or out of order."""
+        last = self.last_ns
+        if last is not None and last - self.restart_ns < stamp_ns <= last:
+            kind = "duplicate" if stamp_ns == last else "out of order"
+            raise ValueError(f"{kind}: stamp {stamp_ns} <= last {last}")
+        self.last_ns = stamp_ns

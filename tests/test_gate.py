@@ -173,8 +173,17 @@ def test_bad_input_raises_value_errors_naming_the_problem() -> None:
         gate.on_prediction(pred)
     with pytest.raises(ValueError, match="without samples"):
         gate.on_prediction(MotionPrediction(header=Header(), model="m", period_s=1, samples=[]))
+    with pytest.raises(ValueError, match="finite number"):  # the message refuses NaN itself
+        observation(0.0, np.array([math.nan, 0, 0]))
+    nan = ObjectObservation.model_construct(header=Header(), centroid=Vec3.model_construct(
+        x=math.nan, y=0.0, z=0.0))
     with pytest.raises(ValueError, match="centroid not finite"):
-        gate.on_observation(observation(0.0, np.array([math.nan, 0, 0])))
+        gate.on_observation(nan)
+    feed(gate, end_s=0.5)
+    with pytest.raises(ValueError, match=r"duplicate: stamp \d+ <= last"):
+        gate.on_observation(observation(0.5, np.zeros(3)))
+    with pytest.raises(ValueError, match=r"out of order: stamp \d+ <= last"):
+        gate.on_observation(observation(0.3, np.zeros(3)))
     with pytest.raises(ValueError, match="t_grasp_ns before t_start_ns"):
         decide(gate, plan(0.0, 1.0, 0.5), now_s=0.0)
     assert gate.on_observation(ObjectObservation(header=Header(), reason="empty cloud")) is None

@@ -73,13 +73,14 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         assert feed("trisect/points", points_cdr(np.zeros((0, 3)))) is True
         assert feed("trisect/points", points_cdr(nan_cloud)) is True
         assert feed("trisect/points", points_cdr(far[:, :2], fields="xy")) is False
-        assert feed("trisect/points", points_cdr(far)) is True
+        assert feed("trisect/points", points_cdr(far)) is False  # the first frame's stamp again
+        assert feed("trisect/points", points_cdr(far, stamp_ns=10**18 + 10**9)) is True
         assert feed("trisect/points", b"\x00\x01\x00\x00 not a cloud") is False
         assert feed("tf_static", b"garbage") is False
         def all_seen() -> bool:
             while not bus.inbox.empty():
                 bus.dispatch(bus.inbox.get())
-            return len(seen) >= 7
+            return len(seen) >= 8
 
         assert wait_until(all_seen, timeout=5), [m.reason for m in seen]
         reasons = [m.reason for m in seen]
@@ -89,9 +90,10 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         assert reasons[1].startswith("unknown frame") and "nowhere" in reasons[1]
         assert reasons[2:4] == ["empty cloud", "empty cloud"]  # NaN points are dropped
         assert "no field z" in reasons[4]
-        assert reasons[5] == "no object-like cluster in the workspace"
-        assert reasons[6].startswith("bad cloud")
+        assert reasons[5] == f"duplicate: stamp {10**18} <= last {10**18}"
+        assert reasons[6] == "no object-like cluster in the workspace"
+        assert reasons[7].startswith("bad cloud")
         assert service.counters["nonfinite_points"] == 100
-        assert bus.bad["trisect/points"] == 2 and bus.bad["tf_static"] == 1
+        assert bus.bad["trisect/points"] == 3 and bus.bad["tf_static"] == 1
     finally:
         bus.close()

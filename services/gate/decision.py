@@ -137,7 +137,8 @@ class Gate:
     def on_observation(self, obs: ObjectObservation) -> ErrorSample | None:
         """Score the matching prediction at this observation; returns the error kept, if any.
 
-        Raises ValueError if the centroid is not finite.
+        Raises ValueError if the centroid is not finite, or if the stamp repeats the latest
+        observation's or is older (by less than ``window_s``: more is a restart).
         """
         c = obs.centroid
         if c is None:
@@ -148,11 +149,12 @@ class Gate:
             raise ValueError("observation centroid not finite")
         t = obs.header.stamp_ns
         self._check_time(t, self.latest_observation_ns)
-        self.latest_observation_ns = max(t, self.latest_observation_ns or t)
+        latest = self.latest_observation_ns
+        if latest is not None and t <= latest:
+            kind = "duplicate" if t == latest else "out of order"
+            raise ValueError(f"{kind}: stamp {t} <= last {latest}")
+        self.latest_observation_ns = t
         self._prune()
-        if any(e.t_ns == t for e in self.errors[-3:]):
-            self.counts["duplicate observations"] += 1
-            return None
         track = self.match(t)
         if track is None:
             self.counts["unmatched observations"] += 1

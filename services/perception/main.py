@@ -21,7 +21,9 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
+from pydantic import Field
 
+from wavegrasp.checks import StampOrder
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
 from wavegrasp.recording_io.ros_msgs import (
@@ -47,6 +49,8 @@ MESH_KEY = "wavegrasp/perception/mesh"
 class PerceptionSettings(Settings):
     mesh_period_s: float = 2.0
     mesh_min_frames: int = 10
+    max_cloud_points: int = Field(2_000_000, gt=0, description="a bigger camera frame (width "
+                                  "x height) is refused unread: the camera sends ~40k points")
 
 
 def object_rotation(axis: np.ndarray) -> np.ndarray:
@@ -77,6 +81,7 @@ class PerceptionService(Service):
                                             initializer=lower_priority)
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
+        self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
         self._waiting: Delivery | None = None  # a frame whose transform has not come yet
         self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
         self.bus.subscribe("tf_static", self.on_tf)
@@ -135,7 +140,7 @@ class PerceptionService(Service):
     def process_frame(self, d: Delivery, wait_for_tf: bool = False) -> bool:
         """Process a frame; True if it has to wait for its camera transform."""
         try:
-            cloud = decode_points(d.payload)
+            cloud = decode_points(d.payload, max_points=self.cfg.max_cloud_points)
         except ValueError as exc:
             self.publish_missing(new_header(self.name, 0, self.clock.now_ns()), f"bad cloud: {exc}")
             raise
@@ -153,6 +158,11 @@ class PerceptionService(Service):
                 return True
             self.publish_missing(header, f"unknown frame: {exc}")
             return False
+        try:  # an older or repeated frame would drag the track back
+            self._order.check(cloud.stamp_ns)
+        except ValueError as exc:
+            self.publish_missing(header, str(exc))
+            raise
         result = self.perception.process(cloud.points, T, cloud.stamp_ns)
         if result.fit is None:
             self.publish_missing(header, result.reason or "no object")

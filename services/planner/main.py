@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
+from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
@@ -96,6 +97,7 @@ class PlannerService(Service):
                            MotionPrediction)
         self._t_grasp: dict[str, int] = {}
         self._pending: tuple[MotionPrediction, Delivery] | None = None
+        self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
@@ -103,6 +105,9 @@ class PlannerService(Service):
             self.body = (msg.radius_m, (msg.length_m or 2 * msg.radius_m) / 2, axis)
 
     def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
+        if len(msg.joint_names) != len(msg.positions):
+            raise ValueError(f"arm_state has {len(msg.joint_names)} joint_names but "
+                             f"{len(msg.positions)} positions")
         by_name = dict(zip(msg.joint_names, msg.positions, strict=True))
         missing = [n for n in self.arm.joint_names if n not in by_name]
         if missing:
@@ -122,7 +127,9 @@ class PlannerService(Service):
 
     def on_prediction(self, msg: MotionPrediction, d: Delivery) -> None:
         """Keep only the newest: planning takes longer than predictions come when candidates
-        fail, and a plan from an older prediction would only be late."""
+        fail, and a plan from an older prediction would only be late (one that comes after a
+        newer one is refused)."""
+        self._order.check(msg.header.stamp_ns)
         if self._pending is not None:
             self.counters["skipped: superseded"] += 1
         self._pending = (msg, d)

@@ -15,6 +15,7 @@ import sys
 import numpy as np
 from pydantic import Field
 
+from wavegrasp.checks import StampOrder
 from wavegrasp.predictor.forecast import Forecast
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS, make_predictor
 from wavegrasp.runtime.bus import Bus, Delivery
@@ -41,6 +42,8 @@ class PredictorService(Service):
         self.cfg = settings
         self.model = make_predictor(settings.predictor)
         self.epoch_ns: int | None = None
+        # A repeated or older observation is refused; one far older restarts the model too.
+        self.order = StampOrder(restart_s=self.model.max_gap_s)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
 
     def on_observation(self, msg: ObjectObservation, d: Delivery) -> None:
@@ -48,6 +51,7 @@ class PredictorService(Service):
             self.counters["observations without centroid"] += 1
             return
         c = msg.centroid
+        self.order.check(msg.header.stamp_ns)
         if self.epoch_ns is None:
             self.epoch_ns = msg.header.stamp_ns
         t = (msg.header.stamp_ns - self.epoch_ns) * 1e-9

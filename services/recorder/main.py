@@ -209,7 +209,8 @@ class Recorder(Service):
         if self.skips(d.key):
             return None
 
-        model = MESSAGE_TYPES.get(d.schema or "") or model_for_key(d.key)
+        # A contract key carries its own type: a payload naming another is refused.
+        model = model_for_key(d.key) or MESSAGE_TYPES.get(d.schema or "")
         if model is None:
             raise BadMessage(f"{d.key}: no message type known for this key "
                              f"(encoding {d.encoding!r})")

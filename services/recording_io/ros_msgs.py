@@ -39,9 +39,16 @@ def stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def decode_points(cdr: bytes) -> Cloud:
-    """x, y, z of a ``sensor_msgs/msg/PointCloud2``; points with NaN or inf are dropped."""
+def decode_points(cdr: bytes, max_points: int | None = None) -> Cloud:
+    """x, y, z of a ``sensor_msgs/msg/PointCloud2``; points with NaN or inf are dropped.
+
+    A cloud of more than ``max_points`` points (width x height) is refused before it is read.
+    """
     msg = _deserialize(cdr, "sensor_msgs/msg/PointCloud2")
+    n = int(msg.width) * int(msg.height)
+    if max_points is not None and n > max_points:
+        raise ValueError(f"PointCloud2 of {msg.width}x{msg.height} = {n} points, more than "
+                         f"the limit of {max_points}")
     fields = {f.name: f for f in msg.fields}
     missing = [n for n in "xyz" if n not in fields]
     if missing:
@@ -50,13 +57,16 @@ def decode_points(cdr: bytes) -> Cloud:
     kinds = {fields[n].datatype for n in "xyz"}
     if not kinds <= {FLOAT32, FLOAT64} or len(kinds) != 1:
         raise ValueError(f"PointCloud2 x, y, z must be float32 or float64, got types {kinds}")
-    n = int(msg.width) * int(msg.height)
     step = int(msg.point_step)
     if n and (step <= 0 or len(msg.data) < n * step):
         raise ValueError(f"PointCloud2 data has {len(msg.data)} bytes, "
                          f"{msg.width}x{msg.height} points of {step} bytes need {n * step}")
     base = ">f" if msg.is_bigendian else "<f"
     size = 4 if kinds == {FLOAT32} else 8
+    end = max(fields[c].offset for c in "xyz") + size
+    if n and end > step:
+        raise ValueError(f"PointCloud2 x, y, z end at byte {end} of a point, beyond its "
+                         f"point_step {step}")
     x = fields["x"].offset
     if n and [fields[c].offset for c in "xyz"] == [x, x + size, x + 2 * size] and (
             x % size == 0 and step % size == 0):
@@ -126,8 +136,16 @@ class StaticTransforms:
         self._parent: dict[str, tuple[str, np.ndarray]] = {}
 
     def update(self, transforms: list[tuple[str, str, np.ndarray]]) -> None:
+        """Take every transform, or none: ValueError naming one that would close a loop."""
+        tree = dict(self._parent)
         for parent, child, T in transforms:
-            self._parent[child] = (parent, T)
+            frame = parent
+            while frame != child and frame in tree:
+                frame = tree[frame][0]
+            if frame == child:
+                raise ValueError(f"transform {parent} -> {child} would make a loop")
+            tree[child] = (parent, T)
+        self._parent = tree
 
     def _to_root(self, frame: str) -> tuple[str, np.ndarray]:
         """The tree's root above ``frame`` and T_root_frame (4, 4)."""

@@ -42,7 +42,11 @@ class CdrAttachment:
             raise ValueError(f"attachment of {len(data)} bytes, expected {_ATTACHMENT.size}")
         if len(data) < _ATTACHMENT.size:  # plain rmw_zenoh attachment: no log time
             data = bytes(data) + b"\0" * 8
-        return cls(*_ATTACHMENT.unpack_from(data))
+        att = cls(*_ATTACHMENT.unpack_from(data))
+        for name in ("seq", "source_ns", "log_time_ns"):
+            if getattr(att, name) < 0:
+                raise ValueError(f"attachment {name} is negative: {getattr(att, name)}")
+        return att
 
 
 def publisher_gid(service: str, key: str) -> bytes:

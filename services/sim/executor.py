@@ -73,6 +73,15 @@ class Attempt:
             raise ValueError(f"plan {plan.plan_id}: joint_names {plan.joint_names} are not "
                              f"the arm's {joint_names}")
         s = plan.joint_trajectory
+        for k, sample in enumerate(s):
+            for name in ("positions", "velocities"):  # velocities may be left out
+                n = len(getattr(sample, name))
+                if n != len(joint_names) and (n or name == "positions"):
+                    raise ValueError(f"plan {plan.plan_id}: joint_trajectory sample {k} has {n} "
+                                     f"{name}, the arm {len(joint_names)} joints")
+            if k and sample.t_ns <= s[k - 1].t_ns:
+                raise ValueError(f"plan {plan.plan_id}: joint_trajectory t_ns not strictly "
+                                 f"increasing at sample {k}")
         t_grasp = plan.t_grasp_ns * 1e-9
         p = plan.grasp.position
         return cls(plan.plan_id, np.array([x.t_ns for x in s]) * 1e-9,
