@@ -20,6 +20,10 @@ from wavegrasp.wavetank.record import RecordConfig, generate
 
 ROOT = Path(__file__).resolve().parent.parent
 
+# test_fuzz.py's helpers assert too: have pytest explain their failures as in a test module
+pytest.register_assert_rewrite("fuzz_cases", "fuzz_harness", "fuzz_pipeline",
+                               "fuzz_sim_recorder_player")
+
 
 def wavegrasp_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "wavegrasp", *args]
