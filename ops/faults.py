@@ -36,6 +36,7 @@ from pathlib import Path
 
 from wavegrasp.ops import launcher as up
 from wavegrasp.ops.sample import cached_recording
+from wavegrasp.recording_io.reader import RecordingError, read_mcap
 from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import ROS_KEYS, Clock, FrameAck, GateDecision, ServiceStats
@@ -64,6 +65,7 @@ class Fault:
     survived: bool = False
     back_after_s: float | None = None
     lost: str = ""
+    lost_s: float | None = None  # the recorder: seconds of written data its kill lost
     detail: str = ""
 
 
@@ -202,12 +204,37 @@ class Injector:
             fault.lost = f"{len(missing)} of {len(frames)} frames not acknowledged"
             if name == "player":
                 fault.lost = f"{summary['player'].get('frames', 0)} frames played in all"
+            if name == "recorder":
+                published = self.watch.frames[-1][1] if self.watch.frames else 0
+                fault.lost_s, text = recorded_loss(self.run.out, self.watch.acks["recorder"],
+                                                   published)
+                fault.lost += f"; {text}"
         approved = [t for t in self.watch.gos for name, died, back in self.down
                     if name in ("perception", "predictor", "planner", "router")
                     and died + 0.1 < t < back]
         self.faults.append(Fault(
             "gate while upstream down", "gate", 0.0, survived=not approved,
             lost=f"{len(approved)} plans approved while an upstream service was down"))
+
+
+def recorded_loss(out: Path, acked: set[int], published: int) -> tuple[float, str]:
+    """What the run's files miss of the camera frames: those the recorder had acknowledged
+    (written, but lost when it was killed before its next flush) and the others (not recorded
+    while it was down), in frames and seconds of the recording: the seconds of written data
+    lost, and the text."""
+    seqs: set[int] = set()
+    stamps: list[int] = []
+    for path in sorted(out.glob("run*.mcap")):
+        with contextlib.suppress(RecordingError):  # a killed recorder's file ends early
+            for _schema, _channel, message in read_mcap(path, topics=["/trisect/points"]):
+                seqs.add(message.sequence)
+                stamps.append(message.log_time)
+    interval_s = (max(stamps) - min(stamps)) / 1e9 / max(len(stamps) - 1, 1) if stamps else 0.0
+    lost = len(acked - seqs)
+    down = published - len(seqs) - lost
+    return lost * interval_s, (f"files lack {lost} acknowledged frames "
+                               f"({lost * interval_s:.1f} s) and {down} while it was down "
+                               f"({down * interval_s:.1f} s)")
 
 
 def concrete_keys(subscriptions: list[str]) -> list[str]:

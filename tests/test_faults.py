@@ -40,5 +40,7 @@ def test_every_fault_is_survived(tmp_path: Path) -> None:
     assert len(files) == 3 and all(f["survived"] for f in files), files
     assert summary["player"]["frames"] == 300, "the player resumed, no frame replayed twice"
     assert f"{len(faults)} of {len(faults)} faults survived" in result.stdout
-    # The killed recorder's file and its successor's are both there and readable.
+    # The killed recorder's file and its successor's are both there and readable; of what it
+    # had written, at most a second was lost.
     assert summary["files"] == ["run-1.mcap", "run.mcap"]
+    assert killed["recorder"]["lost_s"] <= 1.0, killed["recorder"]
