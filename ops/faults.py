@@ -205,9 +205,8 @@ class Injector:
             if name == "player":
                 fault.lost = f"{summary['player'].get('frames', 0)} frames played in all"
             if name == "recorder":
-                published = self.watch.frames[-1][1] if self.watch.frames else 0
                 fault.lost_s, text = recorded_loss(self.run.out, self.watch.acks["recorder"],
-                                                   published)
+                                                   summary["player"].get("frames", 0))
                 fault.lost += f"; {text}"
         approved = [t for t in self.watch.gos for name, died, back in self.down
                     if name in ("perception", "predictor", "planner", "router")
@@ -217,7 +216,7 @@ class Injector:
             lost=f"{len(approved)} plans approved while an upstream service was down"))
 
 
-def recorded_loss(out: Path, acked: set[int], published: int) -> tuple[float, str]:
+def recorded_loss(out: Path, acked: set[int], played: int) -> tuple[float, str]:
     """What the run's files miss of the camera frames: those the recorder had acknowledged
     (written, but lost when it was killed before its next flush) and the others (not recorded
     while it was down), in frames and seconds of the recording: the seconds of written data
@@ -231,10 +230,11 @@ def recorded_loss(out: Path, acked: set[int], published: int) -> tuple[float, st
                 stamps.append(message.log_time)
     interval_s = (max(stamps) - min(stamps)) / 1e9 / max(len(stamps) - 1, 1) if stamps else 0.0
     lost = len(acked - seqs)
-    down = published - len(seqs) - lost
+    down = played - len(seqs) - lost
     return lost * interval_s, (f"files lack {lost} acknowledged frames "
-                               f"({lost * interval_s:.1f} s) and {down} while it was down "
-                               f"({down * interval_s:.1f} s)")
+                               f"({lost * interval_s:.1f} s) and {down} more not recorded "
+                               f"({down * interval_s:.1f} s: while it, or the router, was "
+                               "down)")
 
 
 def concrete_keys(subscriptions: list[str]) -> list[str]:
