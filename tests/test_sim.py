@@ -267,3 +267,36 @@ def test_a_restarted_sim_goes_on_with_its_trials(arm, T_world_base, tmp_path) ->
         assert (third.trial, third.attempt) == (0, 0)
     finally:
         bus.close()
+
+
+def test_a_pose_far_ahead_of_the_clock_is_refused_and_the_scene_goes_on(
+        arm, T_world_base) -> None:
+    """Taken, it would move the scene there, and every later pose would look older."""
+    from wavegrasp.runtime.bus import Bus, Delivery
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.schemas import Clock, Header
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    from fuzz_cases import pose_cdr
+
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim"), bus=bus)
+    now_ns = int(NOW * 1e9)
+
+    def truth(t_ns: int) -> Delivery:
+        return Delivery("groundtruth/object", pose_cdr(t_ns, tuple(swing(t_ns * 1e-9))),
+                        "application/cdr", None, 0, 0)
+
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.executor = Executor(sim.world)
+        sim.world.place_object(swing(NOW), UPRIGHT)
+        sim.world.time_s = NOW
+        sim.on_clock(Clock(header=Header(seq=1, stamp_ns=now_ns), rate=0.0), None)
+        with pytest.raises(ValueError, match="ahead of the recording clock"):
+            sim.on_truth(truth(now_ns + 3600 * 10**9))
+        sim.on_truth(truth(now_ns + 10**8))  # 0.1 s on: taken
+        assert sim.world.time_s == pytest.approx(NOW + 0.1, abs=1e-6)
+    finally:
+        sim.world.close()
+        bus.close()

@@ -10,6 +10,7 @@ names the vehicle's own description.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 import numpy as np
@@ -36,6 +37,7 @@ from wavegrasp.schemas import (
     Vec3,
 )
 
+log = logging.getLogger("wavegrasp.planner")
 PLAN_KEY = "wavegrasp/planner/plan"
 
 
@@ -145,6 +147,10 @@ class PlannerService(Service):
                 self.plan(msg, d)
             except ValueError as exc:
                 self.bus.count_bad("wavegrasp/predictor/prediction", str(exc))
+            except Exception as exc:  # a planner bug on one prediction must not end the loop
+                log.exception("planning failed on prediction %d", msg.header.seq)
+                self.bus.count_bad("wavegrasp/predictor/prediction",
+                                   f"{type(exc).__name__}: {exc}"[:300])
 
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
         if not msg.warm or msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:

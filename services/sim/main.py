@@ -49,6 +49,9 @@ TRUTH_KEY = "groundtruth/object"
 ARM_STATE_KEY = "wavegrasp/sim/arm_state"
 #: Without ground truth for this long (recording seconds), the tracked centroid drives.
 TRUTH_STALE_S = 0.5
+#: A pose stamped further ahead of the recording clock is refused: the scene would jump there
+#: and then ignore every later pose as older.
+MAX_AHEAD_S = 1.0
 
 
 class SimSettings(Settings):
@@ -131,8 +134,14 @@ class SimService(Service):
 
     # --- inputs -------------------------------------------------------------------------
 
+    def check_not_ahead(self, stamp_ns: int) -> None:
+        ahead_s = (stamp_ns - self.clock.now_ns()) / 1e9
+        if ahead_s > MAX_AHEAD_S:
+            raise ValueError(f"stamp {stamp_ns} is {ahead_s:.1f} s ahead of the recording clock")
+
     def on_truth(self, d: Delivery) -> None:
         T, _frame, stamp_ns = decode_pose(d.payload)
+        self.check_not_ahead(stamp_ns)
         att = CdrAttachment.decode(d.attachment)
         if att is not None:
             self._truths = max(self._truths, att.seq + 1)
@@ -159,6 +168,7 @@ class SimService(Service):
             self.shape = ObjectShape(msg.shape, msg.radius_m, length)
         c, t = msg.centroid, msg.header.stamp_ns * 1e-9
         if c is not None and t - self._truth_at > TRUTH_STALE_S:
+            self.check_not_ahead(msg.header.stamp_ns)
             axis = np.array([0.0, 0.0, 1.0]) if msg.axis is None else np.array(
                 [msg.axis.x, msg.axis.y, msg.axis.z])
             quat = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0].as_quat()
