@@ -72,7 +72,13 @@ class StampOrder:
     def check(self, stamp_ns: int) -> None:
         """Take ``stamp_ns``; ValueError if it is a duplicate or out of order."""
         last = self.last_ns
-        if last is not None and last - self.restart_ns < stamp_ns <= last:
-            kind = "duplicate" if stamp_ns == last else "out of order"
-            raise ValueError(f"{kind}: stamp {stamp_ns} <= last {last}")
+        if last is not None and last - self.restart_ns < stamp_ns:
+            check_after(stamp_ns, last)
         self.last_ns = stamp_ns
+
+
+def check_after(stamp_ns: int, last_ns: int | None) -> None:
+    """Raise ValueError if ``stamp_ns`` repeats ``last_ns`` or comes before it."""
+    if last_ns is not None and stamp_ns <= last_ns:
+        kind = "duplicate" if stamp_ns == last_ns else "out of order"
+        raise ValueError(f"{kind}: stamp {stamp_ns} <= last {last_ns}")

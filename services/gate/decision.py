@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from wavegrasp.checks import check_after
 from wavegrasp.schemas import GateDecision, GraspPlan, Header, MotionPrediction, ObjectObservation
 
 NS = 1_000_000_000
@@ -148,11 +149,8 @@ class Gate:
         if not np.all(np.isfinite(actual)):
             raise ValueError("observation centroid not finite")
         t = obs.header.stamp_ns
-        self._check_time(t, self.latest_observation_ns)
-        latest = self.latest_observation_ns
-        if latest is not None and t <= latest:
-            kind = "duplicate" if t == latest else "out of order"
-            raise ValueError(f"{kind}: stamp {t} <= last {latest}")
+        self._check_time(t, self.latest_observation_ns)  # a restart: no latest any more
+        check_after(t, self.latest_observation_ns)
         self.latest_observation_ns = t
         self._prune()
         track = self.match(t)
