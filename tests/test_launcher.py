@@ -13,19 +13,14 @@ from pathlib import Path
 import psutil
 import pytest
 
+from wavegrasp.ops.faults import BAD_INPUTS
 from wavegrasp.runtime.bus import CDR, JSON, Bus
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, ServiceStats, ack_key, stats_key
 
 from conftest import free_port, make_recording, spawn, wait_until, wavegrasp_cmd
 
-GARBAGE = [
-    b"\x00\xff\xfe random bytes \x13\x37",
-    b'{"header": "not a header"}',  # valid JSON, wrong type
-    b"{}",  # missing fields
-    b'{"header": {"seq": 1, "stamp_ns": NaN}}',
-    b"",
-]
+GARBAGE = list(BAD_INPUTS.values())  # what `wavegrasp faults` sends
 
 
 @pytest.fixture(scope="module")
