@@ -51,6 +51,9 @@ from wavegrasp.schemas import ObjectObservation, Vec3
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ECHO = "bench-echo"
+#: The handshake's pings count up from here, clear of the measured ones (sequence numbers
+#: are never negative).
+HANDSHAKE_SEQ = 1_000_000_000
 
 
 class EchoReport(BaseModel):
@@ -212,20 +215,22 @@ class Pinger:
         return True
 
     def handshake(self, timeout_s: float = 30.0) -> None:
-        """Ping (negative seq, not counted) until the echo answers: every route is up."""
+        """Ping (seq from HANDSHAKE_SEQ, not counted) until the echo answers: every route is
+        up."""
         deadline = time.monotonic() + timeout_s
-        seq = -1
+        seq = HANDSHAKE_SEQ
         while time.monotonic() < deadline:
             if self.echo_proc.poll() is not None:
                 raise RuntimeError(f"echo process exited with {self.echo_proc.returncode}")
             self.bus.publish(self.k["small/ping"], observation(seq))
             if self.wait_for(lambda s=seq: self.got == ("small", s), 0.5):
                 return
-            seq -= 1
+            seq += 1
         raise RuntimeError("no answer from the echo process")
 
-    def small(self, seq: int) -> int:
-        """One JSON round trip, ns."""
+    def small(self, seq: int, pause_s: float = 0.0) -> int:
+        """One JSON round trip, ns, after ``pause_s`` of idleness."""
+        time.sleep(pause_s)
         msg = observation(seq)
         t0 = time.perf_counter_ns()
         self.bus.publish(self.k["small/ping"], msg)
@@ -233,8 +238,10 @@ class Pinger:
             raise RuntimeError(f"no pong for small ping {seq}")
         return time.perf_counter_ns() - t0
 
-    def cloud(self, cdr: bytes, expect: int) -> int:
-        """One CDR round trip, ns; ``expect`` is the ping's sequence number (one per ping)."""
+    def cloud(self, cdr: bytes, expect: int, pause_s: float = 0.0) -> int:
+        """One CDR round trip, ns, after ``pause_s`` of idleness; ``expect`` is the ping's
+        sequence number (one per ping)."""
+        time.sleep(pause_s)
         t0 = time.perf_counter_ns()
         seq = self.bus.publish_cdr(self.k["cloud/ping"], cdr, CLOUD_TYPE)
         if seq != expect or not self.wait_for(lambda: self.got == ("cloud", seq), 5.0):
@@ -260,8 +267,9 @@ def run(args: argparse.Namespace) -> list[tuple[str, int, np.ndarray, np.ndarray
         p = Pinger(bus, k, echo_proc)
         p.handshake()
         w = args.warmup
-        small = np.array([p.small(i) for i in range(w + n_small)][w:]) / 2
-        cloud = np.array([p.cloud(cdr, i) for i in range(w + n_cloud)][w:]) / 2
+        pause = args.interval_ms / 1e3
+        small = np.array([p.small(i, pause) for i in range(w + n_small)][w:]) / 2
+        cloud = np.array([p.cloud(cdr, i, pause) for i in range(w + n_cloud)][w:]) / 2
         bus.publish(k["done"], Done())
         if not p.wait_for(lambda: p.report is not None, 10.0) or p.report is None:
             raise RuntimeError("no report from the echo process")
@@ -295,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, help="messages measured (default 1000 / 300 cloud)")
     parser.add_argument("--points", type=int, default=30000, help="points per cloud")
     parser.add_argument("--warmup", type=int, default=50, help="messages sent before measuring")
+    parser.add_argument("--interval-ms", type=float, default=0.0,
+                        help="idle time before each ping (100: a 10 Hz camera's pace; 0: "
+                        "back to back)")
     parser.add_argument("--echo", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--connect", help=argparse.SUPPRESS)
     parser.add_argument("--run-id", help=argparse.SUPPRESS)

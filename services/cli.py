@@ -7,6 +7,8 @@ import os
 import signal
 import sys
 
+from wavegrasp.runtime.placement import place_process
+
 COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("wavegrasp.ops.launcher", "run docker-compose.yml's services locally on a recording"),
     "router": ("wavegrasp.router.main", "the zenoh router the services connect to"),
@@ -58,15 +60,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for var in THREAD_LIMITS:  # read when numpy and open3d load, so before any import
         os.environ.setdefault(var, "1")
-    if name in SERVICES:
-        # Before any thread starts (threads inherit it): the recorder and the sim yield the
-        # cores to the services on the camera-to-decision path.
+    if name in SERVICES or name == "router":
+        # Before any thread starts (threads inherit both): the services off the
+        # camera-to-decision path yield that path's core to it.
         try:
-            os.nice(int(os.environ.get("WAVEGRASP_NICE") or 0))
-        except ValueError:
-            print(f"wavegrasp {name}: WAVEGRASP_NICE must be an integer, got "
-                  f"{os.environ['WAVEGRASP_NICE']!r}", file=sys.stderr)
+            warning = place_process(os.environ.get("WAVEGRASP_NICE", ""),
+                                    os.environ.get("WAVEGRASP_CPUS", ""))
+        except ValueError as exc:
+            print(f"wavegrasp {name}: {exc}", file=sys.stderr)
             return 2
+        if warning:
+            print(f"wavegrasp {name}: warning: {warning}", file=sys.stderr)
+    if name in SERVICES:
         # Block the stop signals before any library starts a thread (threads inherit the
         # mask): the service loop then takes them with sigtimedwait, whichever thread the
         # kernel would have picked and whatever handler a library installed.

@@ -1,0 +1,58 @@
+"""Where a service process runs: its CPUs and its nice value, from the environment.
+
+A frame's way from camera to gate decision goes through perception, the predictor, the planner
+and the gate one after the other, never two at once, so one core serves it; the services off
+that path (player, recorder, sim, viewer) get the other cores, and their bursts (writing a
+cloud to run.mcap, a physics step) no longer land on the core a frame is waiting for. The
+compose file sets ``WAVEGRASP_CPUS`` per service from ``WAVEGRASP_HOT_CPUS`` (default ``0``)
+and ``WAVEGRASP_BACKGROUND_CPUS`` (default ``1``); an empty value leaves the process wherever
+the kernel puts it. Applied before any thread starts: threads inherit both settings.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def parse_cpus(text: str) -> set[int]:
+    """A Linux CPU list (``"0"``, ``"0-3"``, ``"0,2-3"``) as a set; empty text: empty set.
+
+    Raises ValueError naming the part that is not a CPU number or range.
+    """
+    cpus: set[int] = set()
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        first, sep, last = part.partition("-")
+        try:
+            lo, hi = int(first), int(last) if sep else int(first)
+        except ValueError:
+            raise ValueError(f"{part!r} is not a CPU number or range (e.g. 0, 0-3, 0,2)") from None
+        if lo < 0 or hi < lo:
+            raise ValueError(f"{part!r} is not a CPU number or range (e.g. 0, 0-3, 0,2)")
+        cpus.update(range(lo, hi + 1))
+    return cpus
+
+
+def place_process(nice: str, cpus: str) -> str | None:
+    """Apply ``nice`` (an integer, added to the current one) and pin this process to the CPUs
+    of ``cpus`` that it may use. Returns a warning when none of those CPUs is usable here (the
+    process then runs anywhere); raises ValueError naming a malformed value."""
+    try:
+        increment = int(nice or 0)
+    except ValueError:
+        raise ValueError(f"WAVEGRASP_NICE must be an integer, got {nice!r}") from None
+    try:
+        wanted = parse_cpus(cpus)
+    except ValueError as exc:
+        raise ValueError(f"WAVEGRASP_CPUS: {exc}") from None
+    if increment:
+        os.nice(increment)
+    if not wanted or not hasattr(os, "sched_setaffinity"):
+        return None
+    usable = wanted & os.sched_getaffinity(0)
+    if not usable:
+        return (f"WAVEGRASP_CPUS={cpus} names no CPU this process may use "
+                f"({sorted(os.sched_getaffinity(0))}); running unpinned")
+    os.sched_setaffinity(0, usable)
+    return None

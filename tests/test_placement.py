@@ -1,0 +1,105 @@
+"""Where service processes run: CPU lists, pinning of every thread, the compose file's split."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from wavegrasp.ops.compose import load_compose
+from wavegrasp.runtime.placement import parse_cpus
+
+ROOT = Path(__file__).resolve().parents[1]
+DECISION_PATH = {"router", "perception", "predictor", "planner", "gate"}
+
+
+def test_parse_cpus_reads_linux_cpu_lists() -> None:
+    assert parse_cpus("") == set()
+    assert parse_cpus("0") == {0}
+    assert parse_cpus("0-2") == {0, 1, 2}
+    assert parse_cpus("0, 2-3,7") == {0, 2, 3, 7}
+
+
+@pytest.mark.parametrize("text", ["a", "1-", "3-1", "-1", "0,x-2"])
+def test_parse_cpus_names_the_bad_part(text: str) -> None:
+    with pytest.raises(ValueError, match="is not a CPU number or range"):
+        parse_cpus(text)
+
+
+def test_compose_puts_the_decision_path_on_the_hot_cpus() -> None:
+    services = load_compose(ROOT / "docker-compose.yml", {"WAVEGRASP_HOT_CPUS": "2-3",
+                                                           "WAVEGRASP_BACKGROUND_CPUS": "4"})
+    cpus = {name: svc.environment.get("WAVEGRASP_CPUS") for name, svc in services.items()}
+    assert {n for n, c in cpus.items() if c == "2-3"} == DECISION_PATH
+    assert {n for n, c in cpus.items() if c == "4"} == {"player", "recorder", "sim"}
+    unset = load_compose(ROOT / "docker-compose.yml", {})
+    assert unset["perception"].environment["WAVEGRASP_CPUS"] == "0"
+    assert unset["sim"].environment["WAVEGRASP_CPUS"] == "1"
+    empty = load_compose(ROOT / "docker-compose.yml", {"WAVEGRASP_HOT_CPUS": ""})
+    assert empty["perception"].environment["WAVEGRASP_CPUS"] == ""  # empty: not pinned
+
+
+def thread_cpus(pid: int) -> list[str]:
+    """Cpus_allowed_list of every thread of ``pid``."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for line in (task / "status").read_text().splitlines():
+            if line.startswith("Cpus_allowed_list:"):
+                out.append(line.split(":", 1)[1].strip())
+    return out
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_router(cpus: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "WAVEGRASP_CPUS": cpus,
+           "ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}"}
+    return subprocess.Popen([sys.executable, "-m", "wavegrasp", "router"], env=env,
+                            stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_a_pinned_service_runs_every_thread_on_its_cpus() -> None:
+    cpu = min(os.sched_getaffinity(0))
+    proc = start_router(str(cpu))
+    try:
+        deadline = time.monotonic() + 20
+        while len(thread_cpus(proc.pid)) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)  # the zenoh session's threads have started
+        allowed = thread_cpus(proc.pid)
+        assert len(allowed) >= 3
+        assert set(allowed) == {str(cpu)}
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_cpus_that_do_not_exist_leave_the_service_unpinned_with_a_warning() -> None:
+    proc = start_router("4000-4001")
+    try:
+        deadline = time.monotonic() + 20
+        while len(thread_cpus(proc.pid)) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        mine = os.sched_getaffinity(0)
+        assert os.sched_getaffinity(proc.pid) == mine
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert "WAVEGRASP_CPUS=4000-4001 names no CPU this process may use" in err
+
+
+def test_a_malformed_cpu_list_stops_the_service_and_says_why() -> None:
+    proc = start_router("zero")
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert "WAVEGRASP_CPUS: 'zero' is not a CPU number or range" in err
