@@ -83,7 +83,14 @@ class ErrorTracker:
         rows = np.arange(len(i))
         predicted = (1 - w) * pos[rows, i] + w * pos[rows, i + 1]
         err2 = np.sum((predicted - p) ** 2, axis=1)
-        for k, e in zip(np.round(x).astype(int), err2, strict=True):
+        bins = np.round(x).astype(int)
+        if len(np.unique(bins)) == len(bins):  # the usual case: one error per bin, at once
+            old = self.mse[bins]
+            self.mse[bins] = np.where(np.isnan(old[:, :1]), err2[:, None],
+                                      old + self.alphas * (err2[:, None] - old))
+            self.count[bins] += 1
+            return
+        for k, e in zip(bins, err2, strict=True):  # a bin twice: in order, as they came
             old = self.mse[k]
             self.mse[k] = e if np.isnan(old[0]) else old + self.alphas * (e - old)
             self.count[k] += 1

@@ -1,9 +1,9 @@
 """A typed bus over Eclipse Zenoh: pydantic messages as JSON, ROS messages as raw CDR.
 
-Zenoh delivers samples on its own threads; the bus only copies each one into the service's
-inbox there, and :meth:`Bus.dispatch` decodes and handles it on the service's own loop. A
-payload that fails to decode, or whose handler raises, is counted and logged under its key and
-never stops the service.
+Zenoh delivers samples on the thread that receives them from the link; the bus only copies
+each one into the service's inbox there, and :meth:`Bus.dispatch` decodes and handles it on the
+service's own loop. A payload that fails to decode, or whose handler raises, is counted and
+logged under its key and never stops the service.
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ log = logging.getLogger(__name__)
 
 JSON = "application/json"
 CDR = "application/cdr"
-#: The namespace of the project's own messages (one ordered subscriber serves them all).
-OWN_PREFIX = "wavegrasp/"
 #: Zenoh's transmit queue for data holds 2 batches of 64 kB by default: a 440 kB camera cloud
 #: then leaves in steps, each waiting for the link to drain the last, and the player's ``put``
 #: took 1.1 ms instead of 0.3 ms (measured with ``wavegrasp up --pace realtime``); 16 batches
@@ -128,8 +126,6 @@ class Bus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._seq: Counter[str] = Counter()
         self._keep: list[Any] = []  # subscribers and tokens live as long as the bus
-        self._own: list[tuple[zenoh.KeyExpr, int]] = []  # wavegrasp/ key expressions, routes
-        self._own_subscriber: zenoh.Subscriber | None = None
         self._lock = threading.Lock()
         self.alive: set[str] = set()  # kept up to date once watch_alive() is called
         self.alive_since: dict[str, float] = {}  # monotonic time each token last appeared
@@ -185,10 +181,13 @@ class Bus:
         With ``model``, the handler gets ``(msg, delivery)`` with the decoded model; without,
         it gets ``(delivery)`` and raises :class:`BadMessage` (or ValueError) on bad input.
 
-        Keys under ``wavegrasp/`` share one zenoh subscriber, so their samples reach the
-        inbox in the order they were sent: zenoh calls different subscribers' callbacks
-        concurrently, which would let a service's frame acknowledgement overtake the data it
-        acknowledges.
+        Each key has its own zenoh subscriber, so the router sends this service only what it
+        asked for. Their callbacks run on the thread that receives the link's samples, one
+        after the other in the order they arrived, so one publisher's messages reach the
+        inbox in the order they were sent, whatever their keys: a frame acknowledgement never
+        overtakes the data it acknowledges. (zenoh-python's default would run each
+        subscriber's callbacks on a Python thread of its own: concurrently, and one more
+        thread wake-up per message.)
         """
         if model is None:
             route = handler
@@ -199,16 +198,8 @@ class Bus:
             index = len(self._routes)
             self._routes.append(route)
         self.subscriptions.append(key)
-        if key.startswith(OWN_PREFIX):
-            with self._lock:
-                self._own.append((zenoh.KeyExpr(key), index))
-            if self._own_subscriber is None:
-                self._own_subscriber = self.session.declare_subscriber(
-                    OWN_PREFIX + "**", self._on_own_sample)
-                self._keep.append(self._own_subscriber)
-            return
-        self._keep.append(self.session.declare_subscriber(
-            key, lambda sample: self._deliver(sample, index)))
+        self._keep.append(self.session.declare_subscriber(key, zenoh.handlers.Callback(
+            lambda sample: self._deliver(sample, index), indirect=False)))
 
     def _deliver(self, sample: zenoh.Sample, route: int) -> None:
         att = sample.attachment
@@ -216,12 +207,6 @@ class Bus:
             key=str(sample.key_expr), payload=sample.payload.to_bytes(),
             encoding=str(sample.encoding), attachment=None if att is None else att.to_bytes(),
             recv_ns=time.time_ns(), route=route))
-
-    def _on_own_sample(self, sample: zenoh.Sample) -> None:
-        with self._lock:
-            routes = [index for expr, index in self._own if expr.includes(sample.key_expr)]
-        for index in routes:  # keys nobody here subscribed are dropped, not counted
-            self._deliver(sample, index)
 
     def dispatch(self, delivery: Delivery) -> bool:
         """Decode and handle one delivery; count it; False if it was bad."""

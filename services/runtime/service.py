@@ -8,6 +8,7 @@ can call handlers directly or run the loop over a real zenoh session.
 from __future__ import annotations
 
 import faulthandler
+import gc
 import logging
 import queue
 import signal
@@ -29,6 +30,14 @@ def setup_logging(level: str = "INFO") -> None:
     """One line per record on stderr; the launcher prefixes each line with the service name."""
     logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s",
                         force=True)
+
+
+def freeze_startup_objects() -> None:
+    """Leave what start-up made (modules, models: about 115 000 objects) out of the garbage
+    collector's full passes from now on: walking them took about 50 ms each time, a frame's
+    worth of latency whenever one fell on the camera-to-decision path."""
+    gc.collect()
+    gc.freeze()
 
 
 class Service:
@@ -161,6 +170,7 @@ class Service:
         try:
             self.bus.declare_alive()
             self.on_start()
+            freeze_startup_objects()
             self.exit_code = self.serve()
             self.drain()
             self.on_stop()
