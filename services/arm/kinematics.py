@@ -22,6 +22,8 @@ class Chain:
         self._prismatic = np.array([j.type == "prismatic" for j in self.movable])
         # Per joint: its origin's rotation and offset, and which entry of q moves it (-1: fixed).
         self._R0 = [j.origin[:3, :3].copy() for j in joints]
+        # Most joint origins do not rotate: R @ I is R, so `frames` skips that product.
+        self._rotates = [not np.array_equal(R0, np.eye(3)) for R0 in self._R0]
         self._p0 = [j.origin[:3, 3].copy() for j in joints]
         index = np.cumsum([j.movable for j in joints]) - 1
         self._q_index = [int(i) if j.movable else -1 for i, j in zip(index, joints, strict=True)]
@@ -59,18 +61,21 @@ class Chain:
         n = self.dof
         P, Z = np.empty((n, 3)), np.empty((n, 3))
         R, p = np.eye(3), np.zeros(3)
+        values = np.asarray(q, dtype=float).tolist()  # Python floats: cheaper in math.sin
         for k, joint in enumerate(self.joints):
             p = p + R @ self._p0[k]
-            R = R @ self._R0[k]
+            if self._rotates[k]:
+                R = R @ self._R0[k]
             i = self._q_index[k]
             if i < 0:
                 continue
             P[i] = p
             Z[i] = R @ joint.axis
             if joint.type == "prismatic":
-                p = p + q[i] * Z[i]
+                p = p + values[i] * Z[i]
             else:
-                R = R + R @ (math.sin(q[i]) * self._K[k] + (1.0 - math.cos(q[i])) * self._K2[k])
+                R = R + R @ (math.sin(values[i]) * self._K[k]
+                             + (1.0 - math.cos(values[i])) * self._K2[k])
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, p
         return T, P, Z

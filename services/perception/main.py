@@ -33,6 +33,7 @@ from wavegrasp.recording_io.ros_msgs import (
     encode_points,
 )
 from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.placement import parse_cpus, pin
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, new_header
@@ -49,6 +50,8 @@ MESH_KEY = "wavegrasp/perception/mesh"
 class PerceptionSettings(Settings):
     mesh_period_s: float = 2.0
     mesh_min_frames: int = 10
+    worker_cpus: str = Field("", description="CPUs of the mesh worker thread (a Linux CPU "
+                             "list); empty: the service's own")
     max_cloud_points: int = Field(2_000_000, gt=0, description="a bigger camera frame (width "
                                   "x height) is refused unread: the camera sends ~40k points")
 
@@ -63,10 +66,14 @@ def object_rotation(axis: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.cross(z, x), z])
 
 
-def lower_priority() -> None:
-    """Meshing yields the cores to the per-frame work (Linux: a thread's own nice value)."""
+def mesh_worker_setup(cpus: str) -> None:
+    """Meshing (a few hundred ms of CPU every ``mesh_period_s``) yields the cores to the
+    per-frame work: its thread's own nice value, and its own CPUs when ``cpus`` names any."""
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+    warning = pin(parse_cpus(cpus), f"WAVEGRASP_WORKER_CPUS={cpus}")
+    if warning:
+        log.warning("mesh worker: %s", warning)
 
 
 class PerceptionService(Service):
@@ -78,7 +85,8 @@ class PerceptionService(Service):
         self.accumulator = MeshAccumulator()
         self._mesh_job: Future | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh",
-                                            initializer=lower_priority)
+                                            initializer=mesh_worker_setup,
+                                            initargs=(settings.worker_cpus,))
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream

@@ -48,11 +48,18 @@ def place_process(nice: str, cpus: str) -> str | None:
         raise ValueError(f"WAVEGRASP_CPUS: {exc}") from None
     if increment:
         os.nice(increment)
+    return pin(wanted, f"WAVEGRASP_CPUS={cpus}")
+
+
+def pin(wanted: set[int], what: str) -> str | None:
+    """Pin the calling thread (at start-up: the process, as threads inherit it) to the CPUs of
+    ``wanted`` it may use; a warning naming ``what`` if there are none (then nothing changes).
+    """
     if not wanted or not hasattr(os, "sched_setaffinity"):
         return None
-    usable = wanted & os.sched_getaffinity(0)
-    if not usable:
-        return (f"WAVEGRASP_CPUS={cpus} names no CPU this process may use "
-                f"({sorted(os.sched_getaffinity(0))}); running unpinned")
-    os.sched_setaffinity(0, usable)
+    try:  # the kernel keeps those of them this thread may use (its cgroup's, online ones)
+        os.sched_setaffinity(0, wanted)  # 0: the calling thread
+    except OSError:
+        return (f"{what} names no CPU this process may use ({sorted(os.sched_getaffinity(0))}); "
+                "running unpinned")
     return None
