@@ -6,12 +6,14 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from wavegrasp.ops.compose import load_compose
+from wavegrasp.perception.main import mesh_worker_setup
 from wavegrasp.runtime.placement import parse_cpus
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,6 +39,7 @@ def test_compose_puts_the_decision_path_on_the_hot_cpus() -> None:
     cpus = {name: svc.environment.get("WAVEGRASP_CPUS") for name, svc in services.items()}
     assert {n for n, c in cpus.items() if c == "2-3"} == DECISION_PATH
     assert {n for n, c in cpus.items() if c == "4"} == {"player", "recorder", "sim"}
+    assert services["perception"].environment["WAVEGRASP_WORKER_CPUS"] == "4"
     unset = load_compose(ROOT / "docker-compose.yml", {})
     assert unset["perception"].environment["WAVEGRASP_CPUS"] == "0"
     assert unset["sim"].environment["WAVEGRASP_CPUS"] == "1"
@@ -103,3 +106,22 @@ def test_a_malformed_cpu_list_stops_the_service_and_says_why() -> None:
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 2
     assert "WAVEGRASP_CPUS: 'zero' is not a CPU number or range" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_the_mesh_worker_thread_runs_on_its_own_cpus(caplog: pytest.LogCaptureFixture) -> None:
+    cpu = max(os.sched_getaffinity(0))
+    seen: dict[str, set[int]] = {}
+
+    def work(cpus: str) -> None:
+        mesh_worker_setup(cpus)
+        seen[cpus] = os.sched_getaffinity(0)  # 0: this thread
+
+    for cpus in (str(cpu), "4000"):
+        thread = threading.Thread(target=work, args=(cpus,))
+        thread.start()
+        thread.join()
+    assert seen[str(cpu)] == {cpu}
+    assert seen["4000"] == os.sched_getaffinity(0)  # nothing usable: left as it was
+    assert "WAVEGRASP_WORKER_CPUS=4000 names no CPU this process may use" in caplog.text
+    assert os.sched_getaffinity(0) != {cpu} or len(os.sched_getaffinity(0)) == 1  # ours kept

@@ -57,7 +57,8 @@ def _attempt(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarray,
         T, P, Z = chain.frames(q)
         e_p = p_target - T[:3, 3]
         e_r = _rotation_error(T[:3, :3], R_target, approach)
-        if np.linalg.norm(e_p) <= position_tol and np.linalg.norm(e_r) <= angle_tol:
+        # math.sqrt of the dot product is what np.linalg.norm computes, without its overhead.
+        if math.sqrt(e_p @ e_p) <= position_tol and math.sqrt(e_r @ e_r) <= angle_tol:
             return q
         J = chain.jacobian_at(T, P, Z)
         J[3:] *= w
@@ -72,10 +73,10 @@ def _attempt(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarray,
             if since >= PATIENCE:
                 return None
         dq = np.linalg.solve(J.T @ J + (err + 1e-4) * eye, J.T @ e)
-        big = float(np.max(np.abs(dq)))
+        big = float(np.abs(dq).max())
         if big > MAX_STEP:
             dq *= MAX_STEP / big
-        q = np.clip(q + dq, lower, upper)
+        q = np.minimum(np.maximum(q + dq, lower), upper)
     return None
 
 

@@ -20,6 +20,7 @@ class Chain:
         self._K = [skew(j.axis) for j in joints]
         self._K2 = [K @ K for K in self._K]
         self._prismatic = np.array([j.type == "prismatic" for j in self.movable])
+        self._any_prismatic = bool(self._prismatic.any())
         # Per joint: its origin's rotation and offset, and which entry of q moves it (-1: fixed).
         self._R0 = [j.origin[:3, :3].copy() for j in joints]
         # Most joint origins do not rotate: R @ I is R, so `frames` skips that product.
@@ -84,6 +85,10 @@ class Chain:
         """Geometric Jacobian, shape (6, n): rows linear (m per unit q) then angular velocity
         (rad/s per unit q) of the tip, both in frame base, from the output of `frames`."""
         J = np.empty((6, self.dof))
+        if not self._any_prismatic:  # the usual arm: no need to pick per joint
+            J[:3] = cross(Z, T[:3, 3] - P).T
+            J[3:] = Z.T
+            return J
         J[:3] = np.where(self._prismatic[:, None], Z, cross(Z, T[:3, 3] - P)).T
         J[3:] = np.where(self._prismatic[:, None], 0.0, Z).T
         return J
