@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 
 import numpy as np
@@ -16,8 +17,11 @@ from wavegrasp.planner.approach import (
     waypoints,
 )
 from wavegrasp.planner.collision import extent, hand_hits
+from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.wavetank.record import arm_mount
+
+from conftest import Router
 
 OMEGA = 2 * np.pi / 1.08
 BODY = (0.033, 0.061, np.array([0.0, 0.0, 1.0]))  # the 355 ml can, upright
@@ -152,3 +156,17 @@ def test_the_palm_meets_an_upright_bottle_from_above_but_not_from_the_side(
     assert hand_hits(arm, down, bottle)
     assert not hand_hits(arm, side, bottle)
     assert not hand_hits(arm, down, (0.06, 0.06, None))  # the 12 cm buoy fits the jaw
+
+
+def test_the_self_check_plans_at_start_and_says_when_it_cannot(
+        router: Router, caplog: pytest.LogCaptureFixture) -> None:
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        with caplog.at_level(logging.INFO, logger="wavegrasp.planner"):
+            service.self_check()
+            assert "self-check: planned a grasp 0.56 m from the shoulder" in caplog.text
+            service.config = PlannerConfig(max_times=0)  # no grasp time may be tried
+            service.self_check()
+        assert "self-check: no grasp 0.56 m in front of the shoulder" in caplog.text
+    finally:
+        service.bus.close()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -24,7 +25,7 @@ from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import derived_header
+from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
     ArmState,
     GateDecision,
@@ -33,6 +34,7 @@ from wavegrasp.schemas import (
     MotionPrediction,
     ObjectObservation,
     Pose,
+    PredictionSample,
     Quaternion,
     Vec3,
 )
@@ -140,6 +142,38 @@ class PlannerService(Service):
         if self._pending is not None:
             self.counters["skipped: superseded"] += 1
         self._pending = (msg, d)
+
+    def on_start(self) -> None:
+        self.self_check()
+
+    def self_check(self) -> None:
+        """Plan once, before the first frame, for an object swaying in front of the arm's
+        shoulder (in its own base frame), and log how that went: an arm description that
+        cannot plan there shows at start. It also spares the first real plan the set-up its
+        libraries do on first use (LAPACK, ruckig, the plan's serialiser): a first plan took
+        about 27 ms against 6 ms for the next."""
+        started = time.perf_counter()
+        t = np.arange(41) * 0.1
+        sway = np.column_stack([0.05 * np.sin(2 * np.pi * t / 1.2),
+                                0.02 * np.sin(2 * np.pi * t / 1.2),
+                                0.02 * np.cos(2 * np.pi * t / 1.2)])
+        centre = self.arm.shoulder + self.arm.reach_m * np.array([0.55, 0.0, -0.1])
+        samples = [PredictionSample(t_ns=int(round(ti * 1e9)), x=p[0], y=p[1], z=p[2],
+                                    sigma=0.002) for ti, p in zip(t, centre + sway, strict=True)]
+        pred = MotionPrediction(header=new_header(self.name, 0, 0), model="self-check",
+                                period_s=1.2, samples=samples, warm=True)
+        result = plan_grasp(PredictedPath.from_message(pred), 0.0, self.arm, np.eye(4),
+                            self.arm.q_home.copy(), (0.04, 0.04, None), self.config)
+        if isinstance(result, Plan):
+            to_message(result, pred, 0, self.arm, self.name).model_dump_json()
+            log.info("self-check: planned a grasp %.2f m from the shoulder in %.0f ms",
+                     np.linalg.norm(centre - self.arm.shoulder),
+                     (time.perf_counter() - started) * 1e3)
+        else:
+            log.warning("self-check: no grasp %.2f m in front of the shoulder (%s); the arm "
+                        "description may not suit the planner",
+                        np.linalg.norm(centre - self.arm.shoulder),
+                        ", ".join(f"{k} {n}" for k, n in result.items()))
 
     def finish_frame(self, frame_seq: int) -> None:
         self.on_tick()  # plan on the frame's prediction before acknowledging the frame
