@@ -158,7 +158,8 @@ class Perception:
         size = self.prior.length if self.prior is not None else cfg.object_size_m[1] / 2
         radius = size / 2 + cfg.gate_m
         centre_cam = (predicted - T[:3, 3]) @ T[:3, :3]  # predicted centre in the camera frame
-        near = np.einsum("ij,ij->i", points - centre_cam, points - centre_cam) < radius**2
+        offset = points - centre_cam
+        near = np.einsum("ij,ij->i", offset, offset) < radius**2
         world = self._above_seabed(to_world(points[near], T))
         dense, spacing = surface_points(world, cfg)
         found = clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
