@@ -32,8 +32,8 @@ JSON = "application/json"
 CDR = "application/cdr"
 #: Zenoh's transmit queue for data holds 2 batches of 64 kB by default: a 440 kB camera cloud
 #: then leaves in steps, each waiting for the link to drain the last, and the player's ``put``
-#: took 1.1 ms instead of 0.3 ms (measured with ``wavegrasp up --pace realtime``); 16 batches
-#: hold a whole cloud and more.
+#: took 1.1 ms instead of 0.4 ms (measured in ``wavegrasp up --pace realtime`` runs); 16
+#: batches hold a whole cloud and more. A config file that sets the queue keeps its own.
 DATA_QUEUE = "transport/link/tx/queue/size/data"
 ZENOH_DATA_QUEUE = 2
 DATA_QUEUE_BATCHES = 16
@@ -187,7 +187,10 @@ class Bus:
         inbox in the order they were sent, whatever their keys: a frame acknowledgement never
         overtakes the data it acknowledges. (zenoh-python's default would run each
         subscriber's callbacks on a Python thread of its own: concurrently, and one more
-        thread wake-up per message.)
+        thread wake-up per message.) The price: while the service loop runs Python, a sample
+        waits for the interpreter lock there, at most its switch interval (5 ms), and the
+        session's later samples wait behind it; a service loop idles between frames, so on
+        the camera-to-decision path that wait is rare.
         """
         if model is None:
             route = handler
