@@ -144,7 +144,10 @@ class PlannerService(Service):
         self._pending = (msg, d)
 
     def on_start(self) -> None:
-        self.self_check()
+        try:
+            self.self_check()
+        except Exception as exc:  # a check, not a reason to stop: real plans may still work
+            log.warning("self-check failed: %s: %s", type(exc).__name__, exc)
 
     def self_check(self) -> None:
         """Plan once, before the first frame, for an object swaying in front of the arm's
