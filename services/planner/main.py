@@ -75,10 +75,8 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
 
 
 def poses(Ts: list[np.ndarray]) -> list[Pose]:
-    """(4, 4) transforms as Poses; one rotation conversion for all (scipy's per-call cost is
-    most of it)."""
-    if not Ts:
-        return []
+    """(4, 4) transforms (at least one) as Poses; one rotation conversion for all (scipy's
+    per-call cost is most of it)."""
     quats = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts])).as_quat()
     return [Pose(position=vec(T[:3, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
             for T, q in zip(Ts, quats, strict=True)]

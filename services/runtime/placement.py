@@ -1,9 +1,9 @@
 """Where a service process runs: its CPUs and its nice value, from the environment.
 
 A frame's way from camera to gate decision goes through perception, the predictor, the planner
-and the gate one after the other, never two at once, so one core serves it; the services off
-that path (player, recorder, sim, viewer) get the other cores, and their bursts (writing a
-cloud to run.mcap, a physics step) no longer land on the core a frame is waiting for. The
+and the gate one after the other, never two at once, so one core serves it; what is off that
+path (player, recorder, sim, perception's mesh worker) gets the other cores, and its bursts
+(writing a cloud to run.mcap, a physics step) no longer land on the core a frame waits for. The
 compose file sets ``WAVEGRASP_CPUS`` per service from ``WAVEGRASP_HOT_CPUS`` (default ``0``)
 and ``WAVEGRASP_BACKGROUND_CPUS`` (default ``1``); an empty value leaves the process wherever
 the kernel puts it. Applied before any thread starts: threads inherit both settings.
@@ -24,13 +24,10 @@ def parse_cpus(text: str) -> set[int]:
         if not part:
             continue
         first, sep, last = part.partition("-")
-        try:
-            lo, hi = int(first), int(last) if sep else int(first)
-        except ValueError:
-            raise ValueError(f"{part!r} is not a CPU number or range (e.g. 0, 0-3, 0,2)") from None
-        if lo < 0 or hi < lo:
+        numbers = (first, last) if sep else (first, first)
+        if not all(n.strip().isdigit() for n in numbers) or int(numbers[1]) < int(numbers[0]):
             raise ValueError(f"{part!r} is not a CPU number or range (e.g. 0, 0-3, 0,2)")
-        cpus.update(range(lo, hi + 1))
+        cpus.update(range(int(numbers[0]), int(numbers[1]) + 1))
     return cpus
 
 
