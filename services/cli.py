@@ -61,15 +61,14 @@ def main(argv: list[str] | None = None) -> int:
     for var in THREAD_LIMITS:  # read when numpy and open3d load, so before any import
         os.environ.setdefault(var, "1")
     if name in SERVICES or name == "router":
-        # Before any thread starts (threads inherit both): the services off the
-        # camera-to-decision path yield that path's core to it.
+        # Before any thread starts (threads inherit all of it): the camera-to-decision path
+        # runs real-time, what is off it yields.
         try:
-            warning = place_process(os.environ.get("WAVEGRASP_NICE", ""),
-                                    os.environ.get("WAVEGRASP_CPUS", ""))
+            warnings = place_process(os.environ)
         except ValueError as exc:
             print(f"wavegrasp {name}: {exc}", file=sys.stderr)
             return 2
-        if warning:
+        for warning in warnings:
             print(f"wavegrasp {name}: warning: {warning}", file=sys.stderr)
     if name in SERVICES:
         # Block the stop signals before any library starts a thread (threads inherit the

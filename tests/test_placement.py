@@ -11,10 +11,11 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from wavegrasp.ops.compose import load_compose
 from wavegrasp.perception.main import mesh_worker_setup
-from wavegrasp.runtime.placement import parse_cpus
+from wavegrasp.runtime.placement import parse_cpus, parse_rt_priority
 
 ROOT = Path(__file__).resolve().parents[1]
 DECISION_PATH = {"router", "perception", "predictor", "planner", "gate"}
@@ -41,10 +42,40 @@ def test_compose_puts_the_decision_path_on_the_hot_cpus() -> None:
     assert {n for n, c in cpus.items() if c == "4"} == {"player", "recorder", "sim"}
     assert services["perception"].environment["WAVEGRASP_WORKER_CPUS"] == "4"
     unset = load_compose(ROOT / "docker-compose.yml", {})
-    assert unset["perception"].environment["WAVEGRASP_CPUS"] == "0"
+    assert unset["perception"].environment["WAVEGRASP_CPUS"] == ""  # anywhere
     assert unset["sim"].environment["WAVEGRASP_CPUS"] == "1"
-    empty = load_compose(ROOT / "docker-compose.yml", {"WAVEGRASP_HOT_CPUS": ""})
-    assert empty["perception"].environment["WAVEGRASP_CPUS"] == ""  # empty: not pinned
+
+
+def test_compose_runs_the_path_real_time_with_priorities_rising_along_it() -> None:
+    services = load_compose(ROOT / "docker-compose.yml", {})
+    priority = {name: svc.environment.get("WAVEGRASP_RT_PRIORITY")
+                for name, svc in services.items()}
+    path = ["player", "perception", "predictor", "planner", "gate", "router"]
+    values = [int(priority[name]) for name in path]
+    assert values == sorted(set(values)), dict(zip(path, values, strict=True))
+    assert {n for n, p in priority.items() if p is not None} == set(path)
+    assert all(services[n].environment["WAVEGRASP_REALTIME"] == "on" for n in path)
+    off = load_compose(ROOT / "docker-compose.yml", {"WAVEGRASP_REALTIME": "off"})
+    assert all(off[n].environment["WAVEGRASP_REALTIME"] == "off" for n in path)
+    # Docker lets a container change its scheduling policy only with this capability.
+    doc = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    assert {n for n, s in doc["services"].items() if "SYS_NICE" in s.get("cap_add", [])} == (
+        set(path))
+
+
+def test_parse_rt_priority() -> None:
+    assert parse_rt_priority("") is None
+    assert parse_rt_priority("12") == 12
+    assert parse_rt_priority("12", "off") is None
+    assert parse_rt_priority("12", "On") == 12
+
+
+@pytest.mark.parametrize(("text", "switch", "named"), [
+    ("0", "on", "WAVEGRASP_RT_PRIORITY"), ("100", "on", "WAVEGRASP_RT_PRIORITY"),
+    ("high", "on", "WAVEGRASP_RT_PRIORITY"), ("12", "maybe", "WAVEGRASP_REALTIME")])
+def test_a_malformed_rt_setting_is_named(text: str, switch: str, named: str) -> None:
+    with pytest.raises(ValueError, match=named):
+        parse_rt_priority(text, switch)
 
 
 def thread_cpus(pid: int) -> list[str]:
@@ -63,11 +94,73 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_router(cpus: str) -> subprocess.Popen[str]:
+def start_router(cpus: str, **env: str) -> subprocess.Popen[str]:
     env = {**os.environ, "WAVEGRASP_CPUS": cpus,
-           "ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}"}
+           "ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}", **env}
     return subprocess.Popen([sys.executable, "-m", "wavegrasp", "router"], env=env,
                             stderr=subprocess.PIPE, text=True)
+
+
+def thread_policies(pid: int) -> list[tuple[int, int]]:
+    """(policy, priority) of every thread of ``pid``, once its zenoh threads have started."""
+    deadline = time.monotonic() + 20
+    while len(thread_cpus(pid)) < 3 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    tids = [int(task.name) for task in Path(f"/proc/{pid}/task").iterdir()]
+    return [(os.sched_getscheduler(t), os.sched_getparam(t).sched_priority) for t in tids]
+
+
+def realtime_allowed() -> bool:
+    """Whether a process of ours may switch to SCHED_FIFO (root, CAP_SYS_NICE or an rtprio
+    limit); the services then must, and otherwise must say they could not."""
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling policies")
+def test_a_real_time_service_runs_every_thread_under_fifo_or_says_it_cannot() -> None:
+    proc = start_router("", WAVEGRASP_RT_PRIORITY="7")
+    try:
+        policies = thread_policies(proc.pid)
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert len(policies) >= 3
+    if realtime_allowed():
+        assert set(policies) == {(os.SCHED_FIFO, 7)}
+        assert "warning" not in err
+    else:
+        assert set(policies) == {(os.SCHED_OTHER, 0)}
+        assert "WAVEGRASP_RT_PRIORITY=7: real-time scheduling not allowed here" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling policies")
+def test_realtime_off_keeps_the_normal_policy() -> None:
+    proc = start_router("", WAVEGRASP_RT_PRIORITY="7", WAVEGRASP_REALTIME="off")
+    try:
+        policies = thread_policies(proc.pid)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)
+    assert set(policies) == {(os.SCHED_OTHER, 0)}
+
+
+@pytest.mark.skipif(not realtime_allowed(), reason="real-time scheduling not allowed here")
+def test_the_mesh_worker_of_a_real_time_perception_runs_under_the_normal_policy() -> None:
+    code = """if True:
+        import os, threading
+        from concurrent.futures import ThreadPoolExecutor
+        from wavegrasp.perception.main import mesh_worker_setup
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))
+        def policy():
+            tid = threading.get_native_id()
+            return os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid)
+        with ThreadPoolExecutor(1, initializer=mesh_worker_setup, initargs=("",)) as pool:
+            print(*pool.submit(policy).result(), *policy())
+    """
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert [int(v) for v in out] == [os.SCHED_OTHER, 10, os.SCHED_FIFO, 0]
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")

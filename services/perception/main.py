@@ -13,11 +13,8 @@ ground truth.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import os
 import sys
-import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -33,7 +30,7 @@ from wavegrasp.recording_io.ros_msgs import (
     encode_points,
 )
 from wavegrasp.runtime.bus import Bus, Delivery
-from wavegrasp.runtime.placement import parse_cpus, pin
+from wavegrasp.runtime.placement import background_thread
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, new_header
@@ -68,10 +65,9 @@ def object_rotation(axis: np.ndarray) -> np.ndarray:
 
 def mesh_worker_setup(cpus: str) -> None:
     """Meshing (a few hundred ms of CPU every ``mesh_period_s``) yields the cores to the
-    per-frame work: its thread's own nice value, and its own CPUs when ``cpus`` names any."""
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-    warning = pin(parse_cpus(cpus), f"WAVEGRASP_WORKER_CPUS={cpus}")
+    per-frame work: its thread runs under the normal policy, niced, and on its own CPUs when
+    ``cpus`` names any."""
+    warning = background_thread(10, cpus, "WAVEGRASP_WORKER_CPUS")
     if warning:
         log.warning("mesh worker: %s", warning)
 
