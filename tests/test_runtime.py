@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import sys
 import time
 from pathlib import Path
 
@@ -13,9 +15,12 @@ from wavegrasp.recorder.main import Recorder, RecorderSettings
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
+from wavegrasp.runtime.service import STOP_SIGNALS, Service
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
 from wavegrasp.schemas import Clock, FrameAck, Header
+
+from conftest import Router
 
 
 def test_settings_from_env_parse_lists_and_name_bad_variables() -> None:
@@ -114,3 +119,26 @@ def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
 def test_recorder_rejects_a_bad_exclude_expression(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="WAVEGRASP_RECORD_EXCLUDE"):
         RecorderSettings.from_env("recorder", {"WAVEGRASP_RECORD_EXCLUDE": "a//b"}, out=tmp_path)
+
+
+def test_the_service_loop_holds_the_interpreter_lock_as_briefly_as_its_settings_say(
+        router: Router) -> None:
+    class Probe(Service):
+        seen = 0.0
+
+        def on_tick(self) -> None:
+            self.seen = sys.getswitchinterval()
+            self.stop()
+
+    before = sys.getswitchinterval()
+    handlers = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    try:
+        probe = Probe(Settings.from_env("probe", env={**router.env,
+                                                      "WAVEGRASP_SWITCH_INTERVAL_MS": "0.25"}))
+        assert probe.run() == 0
+    finally:
+        sys.setswitchinterval(before)
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert probe.seen == pytest.approx(0.00025)
+    assert Settings(service="x").switch_interval_ms == 0.5  # Python's own default is 5 ms

@@ -12,6 +12,7 @@ import gc
 import logging
 import queue
 import signal
+import sys
 import threading
 import time
 from collections import Counter
@@ -171,6 +172,7 @@ class Service:
             self.bus.declare_alive()
             self.on_start()
             freeze_startup_objects()
+            sys.setswitchinterval(self.settings.switch_interval_ms / 1e3)
             self.exit_code = self.serve()
             self.drain()
             self.on_stop()
