@@ -5,20 +5,23 @@ from __future__ import annotations
 import signal
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
+from wavegrasp.arm import ArmModel
 from wavegrasp.player.main import PlayerSettings
 from wavegrasp.recorder.main import Recorder, RecorderSettings
+from wavegrasp.recorder.rerun_log import RerunLog
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.service import STOP_SIGNALS, Service
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
-from wavegrasp.schemas import Clock, FrameAck, Header
+from wavegrasp.schemas import ArmState, Clock, FrameAck, Header
 
 from conftest import Router
 
@@ -142,3 +145,16 @@ def test_the_service_loop_holds_the_interpreter_lock_as_briefly_as_its_settings_
             signal.signal(sig, handler)
     assert probe.seen == pytest.approx(0.00025)
     assert Settings(service="x").switch_interval_ms == 0.5  # Python's own default is 5 ms
+
+
+def test_the_rerun_log_keeps_an_arm_state_on_its_joint_limits_without_warning(
+        tmp_path: Path) -> None:
+    arm = ArmModel.load(None)
+    log = RerunLog(tmp_path / "run.rrd", arm.urdf_path)
+    state = ArmState(header=new_header("sim", 1, 1_000_000_000), joint_names=arm.joint_names,
+                     positions=arm.q_home.tolist(), jaw_opening_m=0.14 + 1e-9)  # wide open
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # rerun's own clamp warns at every state
+        log.arm_state(state)
+    log.close()
+    assert (tmp_path / "run.rrd").stat().st_size > 0

@@ -192,7 +192,10 @@ class RerunLog:
         for name, value in values.items():
             joint = self._joints.get(name)
             if joint is not None:
-                self.rec.log("world/arm_joints", joint.compute_transform(value, clamp=True))
+                if joint.limit_lower < joint.limit_upper:  # rerun's own clamp warns each time:
+                    # a jaw wide open is a rounding past its limit at every state
+                    value = min(max(value, joint.limit_lower), joint.limit_upper)
+                self.rec.log("world/arm_joints", joint.compute_transform(value))
 
     def outcome(self, msg: GraspOutcome) -> None:
         self._at(msg.header.stamp_ns)
