@@ -85,11 +85,10 @@ def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, see
            # The clouds are in the cached recording already: 36 copies would be 16 GB.
            "WAVEGRASP_RECORD_EXCLUDE": "trisect/points",
            # In lockstep every service is on the path a frame waits for: none yields, none
-           # is pinned or real-time (runs go side by side); and run.mcap holds what a
-           # run.rrd would show (`wavegrasp up` makes one).
+           # is pinned (runs go side by side; none is real-time either, as in every lockstep
+           # run); and run.mcap holds what a run.rrd would show (`wavegrasp up` makes one).
            "WAVEGRASP_BACKGROUND_NICE": "0", "WAVEGRASP_HOT_CPUS": "",
-           "WAVEGRASP_BACKGROUND_CPUS": "", "WAVEGRASP_REALTIME": "off",
-           "WAVEGRASP_RRD": "false"}
+           "WAVEGRASP_BACKGROUND_CPUS": "", "WAVEGRASP_RRD": "false"}
     started = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-m", "wavegrasp", "up", str(recording), "--pace", "lockstep",

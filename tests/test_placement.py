@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from wavegrasp.ops.compose import load_compose
+from wavegrasp.ops.launcher import parse_args, prepare
 from wavegrasp.perception.main import mesh_worker_setup
 from wavegrasp.runtime.placement import parse_cpus, parse_rt_priority
 
@@ -218,3 +219,20 @@ def test_the_mesh_worker_thread_runs_on_its_own_cpus(caplog: pytest.LogCaptureFi
     assert seen["4000"] == os.sched_getaffinity(0)  # nothing usable: left as it was
     assert "WAVEGRASP_WORKER_CPUS=4000 names no CPU this process may use" in caplog.text
     assert os.sched_getaffinity(0) != {cpu} or len(os.sched_getaffinity(0)) == 1  # ours kept
+
+
+@pytest.mark.parametrize(("pace", "env", "expected"), [
+    ("realtime", {}, "on"), ("fast", {}, "off"), ("lockstep", {}, "off"),
+    ("fast", {"WAVEGRASP_REALTIME": "on"}, "on"),
+    ("realtime", {"WAVEGRASP_REALTIME": "off"}, "off")])
+def test_wavegrasp_up_runs_real_time_only_at_the_recordings_rate(
+        pace: str, env: dict[str, str], expected: str, recording: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("WAVEGRASP_REALTIME", raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    run = prepare(parse_args([str(recording), "--pace", pace, "--out", str(tmp_path / "run")]))
+    path = [svc for svc in run.launcher.services.values()
+            if "WAVEGRASP_RT_PRIORITY" in svc.environment]
+    assert len(path) == 6
+    assert {svc.environment["WAVEGRASP_REALTIME"] for svc in path} == {expected}
