@@ -300,3 +300,48 @@ def test_a_pose_far_ahead_of_the_clock_is_refused_and_the_scene_goes_on(
     finally:
         sim.world.close()
         bus.close()
+
+
+def test_an_approval_that_overtakes_its_plan_waits_for_it(arm, T_world_base) -> None:
+    """The plan (from the planner) and its approval (from the gate) reach the sim through the
+    router from two publishers, in either order: the frame the approval came in finishes, and
+    the attempt starts, only once the plan is here, as in every lockstep run."""
+    import time
+
+    from wavegrasp.runtime.bus import Bus, Delivery
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.schemas import FrameAck, GateDecision
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    from fuzz_cases import example_plan, header
+
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim"), bus=bus)
+    t0 = int(NOW * 1e9)
+    plan = example_plan("late", t0)
+    plan.joint_names = list(arm.joint_names)
+    plan.joint_trajectory = [s.model_copy(update={"positions": list(arm.q_home)})
+                             for s in plan.joint_trajectory]
+    go = GateDecision(header=header(t0), plan_id="late", go=True, mean_error_m=0.001,
+                      threshold_m=0.01, window_s=2.0)
+    ack = FrameAck(header=header(t0, seq=7), service="gate", frame_seq=7)
+    delivery = Delivery("wavegrasp/gate/ack", b"", "application/json", None, time.time_ns(), 0)
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.executor = Executor(sim.world)
+        sim.world.place_object(swing(NOW), UPRIGHT)
+        sim.world.time_s = NOW
+        sim.on_decision(go, None)  # before its plan
+        sim.on_upstream_ack(ack, delivery)  # the frame's end
+        assert sim.counters["frames waiting for a plan"] == 1
+        assert sim.attempt == 0 and not bus.bad
+        sim.on_plan(plan, None)
+        assert sim.attempt == 1 and sim._executing == "late"
+        # An approval whose plan never comes is dropped, named, when the next one comes.
+        sim.on_decision(go.model_copy(update={"plan_id": "lost"}), None)
+        sim.on_decision(go.model_copy(update={"plan_id": "other"}), None)
+        assert bus.last_bad_reason["wavegrasp/gate/decision"] == (
+            "decision for plan lost that never arrived")
+    finally:
+        sim.world.close()
+        bus.close()

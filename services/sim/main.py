@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,9 @@ TRUTH_STALE_S = 0.5
 #: A pose stamped further ahead of the recording clock is refused: the scene would jump there
 #: and then ignore every later pose as older.
 MAX_AHEAD_S = 1.0
+#: How long (wall s) an approval waits for its plan, which comes from another publisher and may
+#: arrive after it, before it is dropped as a decision for a plan that never came.
+PLAN_WAIT_S = 2.0
 
 
 class SimSettings(Settings):
@@ -94,6 +98,7 @@ class SimService(Service):
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self._truths = 0  # ground truths received (their attachments' sequence + 1)
         self._go: Attempt | None = None  # approved this frame, not started yet
+        self._go_waiting: tuple[GateDecision, float] | None = None  # (go, monotonic s): no plan
         self._plans_flow = False  # a decision has come: the trials can begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.state = StateFile(settings.resume_file)
@@ -147,20 +152,32 @@ class SimService(Service):
             self._truths = max(self._truths, att.seq + 1)
         self._truth_at = stamp_ns * 1e-9
         self.advance(stamp_ns * 1e-9, T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat())
-        while self._held and self._truths >= self._held[0][0]:
-            _needed, msg, delivery = self._held.pop(0)
-            super().on_upstream_ack(msg, delivery)
+        self.release_frames()
 
     def on_upstream_ack(self, msg: FrameAck, d: Delivery) -> None:
-        """Finish a frame once every ground truth the player sent before it has arrived:
-        zenoh hands them over on another subscriber, so they may come after the frame's
-        acknowledgement, and a lockstep run must see them alike every time."""
+        """Finish a frame once every ground truth the player sent before it, and the plan of
+        an approval that came in it, have arrived: they come from other publishers than the
+        acknowledgement (the player, the planner), so they may come after it, and a lockstep
+        run must see them alike every time."""
         needed = self.clock.published.get(TRUTH_KEY, 0)
-        if self._held or self._truths < needed:
-            self.counters["frames waiting for ground truth"] += 1
+        if self._held or self._truths < needed or self._go_waiting is not None:
+            self.counters["frames waiting for ground truth" if self._truths < needed
+                          else "frames waiting for a plan"] += 1
             self._held.append((needed, msg, d))
             return
         super().on_upstream_ack(msg, d)
+
+    def release_frames(self) -> None:
+        """Finish the held frames whose ground truths and approved plan are here now."""
+        while self._held and self._truths >= self._held[0][0] and self._go_waiting is None:
+            _needed, msg, delivery = self._held.pop(0)
+            super().on_upstream_ack(msg, delivery)
+
+    def on_tick(self) -> None:
+        if self._go_waiting is not None and (
+                time.monotonic() - self._go_waiting[1] > PLAN_WAIT_S):
+            self.drop_waiting_go()
+            self.release_frames()
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.shape is None and msg.radius_m is not None and msg.shape is not None:
@@ -194,17 +211,35 @@ class SimService(Service):
         self.plans[msg.plan_id] = msg
         while len(self.plans) > 20:
             self.plans.pop(next(iter(self.plans)))
+        if self._go_waiting is not None and self._go_waiting[0].plan_id == msg.plan_id:
+            self._go_waiting = None
+            self.approve(msg)
+            self.release_frames()
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         self._plans_flow = True  # trial 0 begins at this frame's end
         if not msg.go:
             return
-        plan = self.plans.get(msg.plan_id)
-        if plan is None:
-            raise ValueError(f"decision for plan {msg.plan_id} that never arrived")
         if self._go is not None:
             self.counters["ignored: another go this frame"] += 1
             return
+        if self._go_waiting is not None:  # the gate approves one plan at a time: that one's
+            self.drop_waiting_go()        # plan is not coming
+        plan = self.plans.get(msg.plan_id)
+        if plan is None:  # the planner's message may come after the gate's: wait for it
+            self._go_waiting = (msg, time.monotonic())
+            return
+        self.approve(plan)
+
+    def drop_waiting_go(self) -> None:
+        assert self._go_waiting is not None
+        plan_id = self._go_waiting[0].plan_id
+        self._go_waiting = None
+        self.bus.count_bad("wavegrasp/gate/decision",
+                           f"decision for plan {plan_id} that never arrived")
+
+    def approve(self, plan: GraspPlan) -> None:
+        """Take an approved plan; it starts at the end of the frame (below)."""
         attempt = Attempt.from_message(plan, self.arm.joint_names)
         attempt.predicted = self.predictions.get(plan.header.seq)
         self._go = attempt  # started when the frame finishes (below)
