@@ -188,9 +188,8 @@ class Bus:
         overtakes the data it acknowledges. (zenoh-python's default would run each
         subscriber's callbacks on a Python thread of its own: concurrently, and one more
         thread wake-up per message.) The price: while the service loop runs Python, a sample
-        waits for the interpreter lock there, at most its switch interval (5 ms), and the
-        session's later samples wait behind it; a service loop idles between frames, so on
-        the camera-to-decision path that wait is rare.
+        waits for the interpreter lock there, at most the loop's switch interval
+        (``Settings.switch_interval_ms``), and the session's later samples wait behind it.
         """
         if model is None:
             route = handler

@@ -98,7 +98,7 @@ class SimService(Service):
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self._truths = 0  # ground truths received (their attachments' sequence + 1)
         self._go: Attempt | None = None  # approved this frame, not started yet
-        self._go_waiting: tuple[GateDecision, float] | None = None  # (go, monotonic s): no plan
+        self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
         self._plans_flow = False  # a decision has come: the trials can begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.state = StateFile(settings.resume_file)
@@ -211,7 +211,7 @@ class SimService(Service):
         self.plans[msg.plan_id] = msg
         while len(self.plans) > 20:
             self.plans.pop(next(iter(self.plans)))
-        if self._go_waiting is not None and self._go_waiting[0].plan_id == msg.plan_id:
+        if self._go_waiting is not None and self._go_waiting[0] == msg.plan_id:
             self._go_waiting = None
             self.approve(msg)
             self.release_frames()
@@ -227,13 +227,13 @@ class SimService(Service):
             self.drop_waiting_go()        # plan is not coming
         plan = self.plans.get(msg.plan_id)
         if plan is None:  # the planner's message may come after the gate's: wait for it
-            self._go_waiting = (msg, time.monotonic())
+            self._go_waiting = (msg.plan_id, time.monotonic())
             return
         self.approve(plan)
 
     def drop_waiting_go(self) -> None:
         assert self._go_waiting is not None
-        plan_id = self._go_waiting[0].plan_id
+        plan_id, _since = self._go_waiting
         self._go_waiting = None
         self.bus.count_bad("wavegrasp/gate/decision",
                            f"decision for plan {plan_id} that never arrived")
