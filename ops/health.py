@@ -16,10 +16,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=2.0)
     args = parser.parse_args(argv)
     settings = Settings.from_env("health-check", connect_timeout_s=args.timeout)
-    if args.service == "router":
-        # A router's liveliness is visible from any session that reaches it.
-        settings.zenoh_connect = [e.replace("0.0.0.0", "127.0.0.1") for e in (
-            settings.zenoh_listen or settings.zenoh_connect)]
+    if args.service == "router" and settings.zenoh_listen:
+        # Run beside the router (its container sets ZENOH_LISTEN): connect to where it
+        # listens. A router's liveliness is visible from any session that reaches it.
+        settings.zenoh_connect = [e.replace("0.0.0.0", "127.0.0.1") for e in
+                                  settings.zenoh_listen]
+    settings.zenoh_listen = []  # a client only: never bind the port the service holds
     try:
         bus = Bus(settings)
     except ConnectionError as exc:

@@ -22,7 +22,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections import Counter, defaultdict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.reader import RecordingError, open_for_replay
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
@@ -74,15 +74,10 @@ class Launcher:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.started: list[str] = []
         self.bus: Bus | None = None
-        self.stats: dict[str, dict] = {}
-        self.outcomes: list[dict] = []
-        self.player_status: dict = {}
+        self.summary = RunSummary()
         self.interrupted = threading.Event()
         self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
         self.restarts: dict[str, list[Restart]] = {}
-        self._bad_before: dict[str, Counter[str]] = defaultdict(Counter)  # earlier processes
-        self._bad_now: dict[str, Counter[str]] = {}
-        self._uptime: dict[str, float] = {}
         self._pumps: list[threading.Thread] = []
         self._t0 = time.monotonic()
         self._up_since: dict[str, float] = {}
@@ -119,22 +114,15 @@ class Launcher:
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
 
     def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
-        self.outcomes.append(msg.model_dump(exclude={"header"}))
+        self.summary.on_outcome(msg)
         self.log(f"grasp attempt {msg.attempt} ({msg.plan_id}): "
                  + ("success" if msg.success else f"failed, {msg.failure}"))
 
     def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
-        """Keep each service's latest stats; bad-message counts add up across its restarts."""
-        name = msg.service
-        if msg.uptime_s < self._uptime.get(name, 0.0):  # a new process
-            self._bad_before[name].update(self._bad_now[name])
-        self._uptime[name], self._bad_now[name] = msg.uptime_s, Counter(msg.bad)
-        stats = msg.model_dump(exclude={"header"})
-        stats["bad"] = dict(self._bad_before[name] + self._bad_now[name])
-        self.stats[name] = stats
+        self.summary.on_stats(msg)
 
     def on_status(self, msg: PlayerStatus, _d: Delivery) -> None:
-        self.player_status = msg.model_dump(exclude={"header", "metadata"})
+        self.summary.on_status(msg)
 
     def pump_bus(self) -> None:
         while self.bus is not None:
@@ -366,29 +354,26 @@ def summarize(run: Run, why: str) -> dict:
     """Write ``summary.json`` and log the run's end; returns the summary."""
     launcher = run.launcher
     codes = {n: p.returncode for n, p in launcher.procs.items()}
+    collected = launcher.summary
     summary = {
         "recording": str(run.recording), "pace": run.args.pace, "out": str(run.out),
         "ended": why, "crashed": run.crashed, "exit_codes": codes,
-        "duration_s": round(time.time() - run.started, 3), "player": launcher.player_status,
-        "bad_messages": {n: s["bad"] for n, s in launcher.stats.items() if s.get("bad")},
-        "services": launcher.stats,
+        "duration_s": round(time.time() - run.started, 3), **collected.as_dict(),
         "restarts": {n: [asdict(r) for r in rs] for n, rs in launcher.restarts.items() if rs},
-        "outcomes": launcher.outcomes,
         "files": sorted(p.name for p in run.out.glob("run*.mcap")),
     }
     (run.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    bad = sum(sum(b.values()) for b in summary["bad_messages"].values())
     for name, per_key in summary["bad_messages"].items():
-        reasons = launcher.stats[name].get("last_bad_reason", {})
+        reasons = collected.stats[name].get("last_bad_reason", {})
         for key, n in sorted(per_key.items()):
             launcher.log(f"bad messages: {name} <- {key}: {n} (last: {reasons.get(key, '?')})")
     for name, rs in launcher.restarts.items():
         backs = [f"{r.back_s - r.died_s:.1f} s" if r.back_s is not None else "not back"
                  for r in rs]
         launcher.log(f"restarted {name} {len(rs)} time(s); back after {', '.join(backs)}")
-    kinds = Counter("success" if o["success"] else o["failure"] for o in launcher.outcomes)
-    launcher.log(f"{why}: {launcher.player_status.get('frames', 0)} frames, {bad} bad messages;"
-                 f" grasps {dict(kinds) or 'none'};"
+    grasps = collected.outcome_kinds() or "none"
+    launcher.log(f"{why}: {collected.player_status.get('frames', 0)} frames, "
+                 f"{collected.bad_total()} bad messages; grasps {grasps};"
                  f" exit codes {codes}; wrote {run.out / 'summary.json'}")
     return summary
 

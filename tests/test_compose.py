@@ -40,8 +40,8 @@ def test_launcher_reads_services_in_dependency_order() -> None:
     order = start_order(services)
     assert order[0] == "router" and order[-1] == "player"
     assert services["recorder"].environment["ZENOH_CONNECT"] == "tcp/127.0.0.1:9999"
-    assert services["player"].command[2] == "/data/x.mcap"
-    assert services["player"].command[4] == "realtime"  # the default applies when unset
+    assert services["player"].environment["WAVEGRASP_RECORDING"] == "/data/x.mcap"
+    assert services["player"].command[3] == "realtime"  # the default applies when unset
     assert services["player"].labels["wavegrasp.ends-run"] == "true"
     assert services["player"].depends_on == {
         name: "service_healthy"

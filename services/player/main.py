@@ -1,4 +1,4 @@
-"""``wavegrasp player RECORDING``: replay a recording over the bus.
+"""``wavegrasp player [RECORDING]``: replay a recording over the bus.
 
 Reads MCAP (ROS 2 profile), ROS 1 ``.bag`` files and ROS 2 bag folders and publishes
 ``/trisect/points``, ``/tf_static`` and ``/groundtruth/object`` on keys ``trisect/points``,
@@ -33,8 +33,9 @@ import time
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
+from wavegrasp.ops.sample import default_recording
 from wavegrasp.recording_io.reader import (
     RecordedMessage,
     Recording,
@@ -59,6 +60,9 @@ Pace = Literal["realtime", "fast", "lockstep"]
 
 
 class PlayerSettings(Settings):
+    recording: Path | None = Field(None, description="what to replay when the command line "
+                                   "names nothing; unset or empty: the sample, generated into "
+                                   "the cache on first use")
     pace: Pace = "realtime"
     ack_services: list[str] = Field(default_factory=lambda: ["recorder"],
                                     description="whose FrameAcks end a frame in lockstep")
@@ -71,6 +75,11 @@ class PlayerSettings(Settings):
     resume_file: Path | None = Field(None, description="where the player notes how far it "
                                      "got after each camera frame; a restarted player "
                                      "resumes from there (same recording only)")
+
+    @field_validator("recording", mode="before")
+    @classmethod
+    def empty_is_unset(cls, value: object) -> object:
+        return value or None
 
 
 class Player(Service):
@@ -241,7 +250,9 @@ class Player(Service):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="wavegrasp player", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("recording", type=Path, help="MCAP file, ROS 1 .bag or ROS 2 bag folder")
+    parser.add_argument("recording", type=Path, nargs="?",
+                        help="MCAP file, ROS 1 .bag or ROS 2 bag folder (default: "
+                        "WAVEGRASP_RECORDING, else the sample `wavegrasp up` plays)")
     parser.add_argument("--pace", choices=["realtime", "fast", "lockstep"],
                         help="default: WAVEGRASP_PACE or realtime")
     parser.add_argument("--wait-for", help="services to await, comma-separated")
@@ -250,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = PlayerSettings.from_env(
             "player", pace=args.pace,
             wait_for=args.wait_for.split(",") if args.wait_for else None)
-        recording = open_for_replay(args.recording)
+        recording = open_for_replay(args.recording or settings.recording or default_recording())
     except (ValueError, RecordingError) as exc:
         print(f"wavegrasp player: {exc}", file=sys.stderr)
         return 2

@@ -20,6 +20,7 @@ import argparse
 import contextlib
 import json
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -31,6 +32,7 @@ from pydantic import BaseModel, Field, field_validator
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.recorder.rerun_log import RerunLog
+from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.ros_msgs import (
     StaticTransforms,
     decode_points,
@@ -55,6 +57,7 @@ from wavegrasp.schemas import (
     MotionPrediction,
     ObjectObservation,
     PlayerStatus,
+    ServiceStats,
     model_for_key,
 )
 from wavegrasp.schemas.export import schema_text
@@ -119,6 +122,10 @@ class Recorder(Service):
             self.rerun = RerunLog(self.path.with_suffix(".rrd") if settings.rrd else None,
                                   self.arm.urdf_path, settings.viewer_url or None)
         self.tf = StaticTransforms()
+        self.summary = RunSummary()
+        self._to_summary = {ServiceStats: self.summary.on_stats,
+                            PlayerStatus: self.summary.on_status,
+                            GraspOutcome: self.summary.on_outcome}
         self._to_rerun = {ObjectObservation: "observation", MotionPrediction: "prediction",
                           GraspPlan: "plan", GateDecision: "decision", ArmState: "arm_state",
                           GraspOutcome: "outcome"}
@@ -215,6 +222,9 @@ class Recorder(Service):
             raise BadMessage(f"{d.key}: no message type known for this key "
                              f"(encoding {d.encoding!r})")
         msg = decode_model(d, model)
+        feed = self._to_summary.get(type(msg))
+        if feed is not None:
+            feed(msg)
         if isinstance(msg, PlayerStatus) and msg.metadata and not self._wrote_metadata:
             self.writer.add_metadata("wavegrasp.recording", msg.metadata)
             self._wrote_metadata = True
@@ -247,6 +257,22 @@ class Recorder(Service):
             self.rerun.close()
         log.info("wrote %d messages (%d camera frames) to %s", self.written, self.frames,
                  self.path)
+        self.write_summary()
+
+    def write_summary(self) -> None:
+        """``summary.json`` beside the run: what the bus said of it (``wavegrasp up`` writes
+        its own over it, with exit codes and restarts)."""
+        status = self.summary.player_status
+        summary = {
+            "recording": status.get("recording"), "pace": status.get("pace"),
+            "out": str(self.settings.out),
+            "ended": "finished" if status.get("state") == "finished" else "stopped",
+            "written_by": "recorder", **self.summary.as_dict(),
+            "files": sorted(p.name for p in self.settings.out.glob("run*.mcap")),
+        }
+        path = self.settings.out / "summary.json"
+        path.write_text(json.dumps(summary, indent=2) + "\n")
+        log.info("%s: grasps %s", path, self.summary.outcome_kinds() or "none")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -259,4 +285,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wavegrasp recorder: {exc}", file=sys.stderr)
         return 2
     setup_logging(settings.log_level)
-    return Recorder(settings).run()
+    try:
+        recorder = Recorder(settings)
+    except OSError as exc:  # e.g. a folder mounted from the host that this user may not write
+        print(f"wavegrasp recorder: cannot write the run to {settings.out}: {exc.strerror} "
+              f"(running as uid {os.getuid()}; under docker compose, the folder mounted at "
+              "/runs must be writable by WAVEGRASP_UID)", file=sys.stderr)
+        return 2
+    return recorder.run()

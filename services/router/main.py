@@ -14,6 +14,7 @@ import sys
 import threading
 
 from wavegrasp.runtime.bus import Bus, open_session
+from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.service import setup_logging
 from wavegrasp.runtime.settings import Settings, split_endpoints
 
@@ -41,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     bus = Bus(settings, session=session)
     bus.declare_alive()
     log.info("router listening on %s", ", ".join(settings.zenoh_listen))
-    stop.wait()
+    heartbeat = Heartbeat(settings.health_file)
+    heartbeat.beat(bus)
+    while not stop.wait(heartbeat.period_s):
+        heartbeat.beat(bus)
     bus.close()
     return 0

@@ -116,6 +116,7 @@ class Bus:
 
     def __init__(self, settings: Settings, session: zenoh.Session | None = None) -> None:
         self.service = settings.service
+        self.mode = settings.zenoh_mode
         self.session = session if session is not None else open_session(settings)
         self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
         self.received: Counter[str] = Counter()
@@ -233,6 +234,10 @@ class Bus:
     def declare_alive(self) -> None:
         """Hold the liveliness token ``wavegrasp/health/<service>`` until the bus closes."""
         self._keep.append(self.session.liveliness().declare_token(health_key(self.service)))
+
+    def reaches_network(self) -> bool:
+        """Whether the session is connected: a client or peer to a router, a router always."""
+        return self.mode == "router" or bool(self.session.info.routers_zid())
 
     def alive_services(self, timeout_s: float = 1.0) -> set[str]:
         """Names of services whose liveliness token is visible now."""

@@ -19,6 +19,7 @@ from collections import Counter
 
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
+from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import Clock, FrameAck, Header, ServiceStats, ack_key, stats_key
@@ -63,6 +64,7 @@ class Service:
         self.stopping = threading.Event()
         self.counters: Counter[str] = Counter()  # service-specific, published with the stats
         self.exit_code = 0
+        self.heartbeat = Heartbeat(settings.health_file)
         self._started = time.monotonic()
         self._next_stats = 0.0
         self._stats_seq = 0
@@ -142,6 +144,7 @@ class Service:
         if now >= self._next_stats:
             self._next_stats = now + self.settings.stats_period_s
             self.publish_stats()
+        self.heartbeat.beat(self.bus)
 
     def serve(self) -> int:
         """The service's main loop; returns an exit code. Sources (the player) override it."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import typing
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -48,6 +49,9 @@ class Settings(BaseModel):
         "lets go, the waiting thread wakes at every lock release numpy makes and slows the "
         "loop: a plan computed while an acknowledgement arrived took 9.4 ms instead of 6")
     connect_timeout_s: float = Field(15.0, gt=0)
+    health_file: Path | None = Field(
+        None, description="touched every second while the service runs and reaches the "
+        "router (compose's healthcheck reads its age)")
 
     @classmethod
     def from_env(
