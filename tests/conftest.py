@@ -12,8 +12,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from wavegrasp.ops.launcher import free_port
+from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.runtime.bus import Bus
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.wavetank.record import RecordConfig, generate
@@ -83,6 +85,22 @@ def make_recording(path: Path, seconds: float, seed: int = 0, wave: int = 1,
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A short recording that follows the recording contract (5 s, 50 camera frames)."""
     return make_recording(tmp_path_factory.mktemp("rec") / "tank.mcap", seconds=5.0, seed=7)
+
+
+def recorded(run_mcap: Path) -> tuple[dict[str, list[bytes]], dict[str, tuple[str, str]]]:
+    """Payloads per topic, and (schema name, schema encoding) per topic, of a run file."""
+    payloads: dict[str, list[bytes]] = {}
+    schemas: dict[str, tuple[str, str]] = {}
+    with run_mcap.open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            payloads.setdefault(channel.topic, []).append(message.data)
+            assert schema is not None and schema.data, f"{channel.topic} has no schema"
+            schemas[channel.topic] = (schema.name, schema.encoding)
+    return payloads, schemas
+
+
+def source_frames(recording: Path) -> list[bytes]:
+    return [m.cdr for m in open_recording(recording).messages() if m.topic == "/trisect/points"]
 
 
 def wait_until(predicate, timeout: float = 10.0, period: float = 0.05) -> bool:

@@ -7,33 +7,16 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
 
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
 
-from conftest import wavegrasp_cmd
+from conftest import recorded, source_frames, wavegrasp_cmd
 
 
 def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120):
     return subprocess.run(wavegrasp_cmd("up", str(recording), "--pace", pace, "--out", str(out)),
                           capture_output=True, text=True, timeout=timeout)
-
-
-def recorded(run_mcap: Path) -> tuple[dict[str, list[bytes]], dict[str, tuple[str, str]]]:
-    """Payloads per topic, and (schema name, schema encoding) per topic, of a run file."""
-    payloads: dict[str, list[bytes]] = {}
-    schemas: dict[str, tuple[str, str]] = {}
-    with run_mcap.open("rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
-            payloads.setdefault(channel.topic, []).append(message.data)
-            assert schema is not None and schema.data, f"{channel.topic} has no schema"
-            schemas[channel.topic] = (schema.name, schema.encoding)
-    return payloads, schemas
-
-
-def source_frames(recording: Path) -> list[bytes]:
-    return [m.cdr for m in open_recording(recording).messages() if m.topic == "/trisect/points"]
 
 
 def check_run(recording: Path, out: Path, result: subprocess.CompletedProcess) -> dict:
