@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import threading
 from collections.abc import Mapping
+from pathlib import Path
 
 REALTIME_OFF = {"off", "false", "no", "0"}
 REALTIME_ON = {"on", "true", "yes", "1", ""}
@@ -95,9 +97,30 @@ def realtime(priority: int) -> str | None:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
         return (f"WAVEGRASP_RT_PRIORITY={priority}: real-time scheduling not allowed here "
-                f"({exc}; it needs CAP_SYS_NICE, e.g. compose's cap_add: [SYS_NICE], or an "
-                "rtprio limit); running under the normal policy")
+                f"({exc}; {realtime_hint(priority)}); running under the normal policy")
     return None
+
+
+def realtime_hint(priority: int) -> str:
+    """What this process lacks for SCHED_FIFO at ``priority``, as far as it can tell."""
+    if hasattr(os, "geteuid") and os.geteuid() != 0:
+        limit = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+        if limit != resource.RLIM_INFINITY and limit < priority:
+            return (f"this user's rtprio limit is {limit}: raise it (compose: ulimits rtprio, "
+                    "WAVEGRASP_RTPRIO_LIMIT; limits.conf) or run as root with CAP_SYS_NICE")
+    try:  # cgroup v1 with real-time group scheduling: the group's own real-time budget
+        group = Path("/proc/self/cgroup").read_text()
+        cpu = next(line.split(":", 2)[2] for line in group.splitlines()
+                   if "cpu" in line.split(":", 2)[1].split(","))
+        # A container sees its own group at the hierarchy's root.
+        runtime = next(p for p in (Path(f"/sys/fs/cgroup/cpu{cpu}/cpu.rt_runtime_us"),
+                                   Path("/sys/fs/cgroup/cpu/cpu.rt_runtime_us")) if p.exists())
+        if int(runtime.read_text()) == 0:
+            return ("this cgroup has no real-time runtime (cgroup v1: dockerd --cpu-rt-runtime "
+                    "and compose's cpu_rt_runtime, WAVEGRASP_CPU_RT_RUNTIME)")
+    except (OSError, ValueError, StopIteration, IndexError):
+        pass
+    return "it needs CAP_SYS_NICE, e.g. compose's cap_add: [SYS_NICE], or an rtprio limit"
 
 
 def background_thread(nice: int, cpus: str, what: str) -> str | None:
