@@ -1,5 +1,7 @@
-"""``wavegrasp health NAME``: exit 0 if service NAME holds its liveliness token (compose's
-healthcheck), 1 if not."""
+"""``wavegrasp health NAME``: exit 0 if service NAME holds its liveliness token, 1 if not.
+
+Asks the router, from any host that reaches it, as a client that binds no port. (Compose's
+healthchecks read each container's heartbeat file instead: services/runtime/heartbeat.py.)"""
 
 from __future__ import annotations
 
