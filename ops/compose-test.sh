@@ -90,7 +90,6 @@ log "image: $($DOCKER image inspect -f '{{.Size}}' wavegrasp:latest | awk '{prin
 export WAVEGRASP_RECORDINGS=$(dirname "$recording")
 export WAVEGRASP_RECORDING=recordings/$(basename "$recording")
 export WAVEGRASP_RUNS=$outdir WAVEGRASP_OUT=/runs
-export WAVEGRASP_UID=$(id -u) WAVEGRASP_GID=$(id -g)
 export WAVEGRASP_ROUTER_PUBLISH=127.0.0.1:$(python3 -c \
   'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
 compose=(docker-compose -p "${WAVEGRASP_COMPOSE_PROJECT:-wavegrasp-test}" -f docker-compose.yml)

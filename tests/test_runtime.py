@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import time
@@ -18,10 +19,19 @@ from wavegrasp.recorder.rerun_log import RerunLog
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.clock import RecordingClock
+from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.service import STOP_SIGNALS, Service
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
-from wavegrasp.schemas import ArmState, Clock, FrameAck, Header
+from wavegrasp.schemas import (
+    ArmState,
+    Clock,
+    FrameAck,
+    GraspOutcome,
+    Header,
+    PlayerStatus,
+    ServiceStats,
+)
 
 from conftest import Router
 
@@ -117,6 +127,58 @@ def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
     with rec.path.open("rb") as f:
         topics = {c.topic for _, c, _ in make_reader(f).iter_messages(log_time_order=False)}
     assert topics == {"wavegrasp/clock"}
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_recorder_writes_the_runs_summary_when_it_stops(isolated_bus: Bus,
+                                                        tmp_path: Path) -> None:
+    """Under docker compose no launcher sees the run: the recorder's summary.json says how it
+    went, bad messages added up across a service's restart."""
+    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path, rrd=False),
+                   bus=isolated_bus)
+    route = len(isolated_bus.subscriptions) - 1
+
+    def deliver(key: str, msg) -> None:
+        payload = msg.model_dump_json().encode()
+        assert isolated_bus.dispatch(Delivery(key, payload, JSON, None, 0, route))
+
+    deliver("wavegrasp/perception/stats", ServiceStats(
+        header=Header(), service="perception", bad={"trisect/points": 2}, uptime_s=30.0))
+    deliver("wavegrasp/perception/stats", ServiceStats(  # restarted: its counts start again
+        header=Header(), service="perception", bad={"trisect/points": 1}, uptime_s=1.0))
+    deliver("wavegrasp/sim/outcome", GraspOutcome(
+        header=Header(), plan_id="p1", trial=0, attempt=1, success=False, failure="timing"))
+    deliver("wavegrasp/sim/outcome", GraspOutcome(
+        header=Header(), plan_id="p2", trial=0, attempt=2, success=True))
+    deliver("wavegrasp/player/status", PlayerStatus(
+        header=Header(), state="finished", recording="recordings/x.mcap", pace="lockstep",
+        frames=160))
+    rec.on_stop()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["ended"] == "finished" and summary["player"]["frames"] == 160
+    assert summary["recording"] == "recordings/x.mcap" and summary["files"] == ["run.mcap"]
+    assert [(o["plan_id"], o["success"], o["failure"]) for o in summary["outcomes"]] == [
+        ("p1", False, "timing"), ("p2", True, None)]
+    assert summary["bad_messages"] == {"perception": {"trisect/points": 3}}
+
+
+def test_heartbeat_is_touched_only_while_the_bus_reaches_a_router(router: Router,
+                                                                   tmp_path: Path) -> None:
+    """Compose's healthcheck reads the file's age: no file while a client has no router."""
+    alone = Bus(Settings(service="alone", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    connected = router.bus("connected")
+    try:
+        Heartbeat(tmp_path / "alone").beat(alone)
+        assert not (tmp_path / "alone").exists()
+        beat = Heartbeat(tmp_path / "up", period_s=60.0)
+        beat.beat(connected)
+        first = (tmp_path / "up").stat().st_mtime_ns
+        time.sleep(0.02)
+        beat.beat(connected)  # within its period: not touched again
+        assert (tmp_path / "up").stat().st_mtime_ns == first
+    finally:
+        alone.close()
+        connected.close()
 
 
 def test_recorder_rejects_a_bad_exclude_expression(tmp_path: Path) -> None:
