@@ -41,15 +41,18 @@ if ! $DOCKER info >/dev/null 2>&1; then
   # runtime unless dockerd has some to hand out (compose's cpu_rt_runtime).
   if [ -f /sys/fs/cgroup/cpu/cpu.rt_runtime_us ]; then
     rt_flag=(--cpu-rt-runtime=900000)
+    rt_dockerd=1
   fi
   log "starting dockerd (log: $dockerd_log)"
   $SUDO sh -c "nohup /usr/sbin/dockerd ${rt_flag[*]} >'$dockerd_log' 2>&1 &"
   for _ in $(seq 60); do $DOCKER info >/dev/null 2>&1 && break; sleep 0.5; done
   $DOCKER info >/dev/null 2>&1 || { log "dockerd did not start; see $dockerd_log"; exit 1; }
 fi
-if [ -f /sys/fs/cgroup/cpu/cpu.rt_runtime_us ] && [ -z "${WAVEGRASP_CPU_RT_RUNTIME:-}" ]; then
+files=(-f docker-compose.yml)
+docker_rt=$(cat /sys/fs/cgroup/cpu/docker/cpu.rt_runtime_us 2>/dev/null || echo 0)
+if [ -n "${rt_dockerd:-}" ] || [ "$docker_rt" -ge 900000 ]; then
   # Six containers on the real-time path share dockerd's 900 ms per second.
-  export WAVEGRASP_CPU_RT_RUNTIME=150ms
+  files+=(-f ops/compose-rt-cgroup-v1.yml)
 fi
 
 if ! (ulimit -Hr 99) 2>/dev/null; then
@@ -92,7 +95,7 @@ export WAVEGRASP_RECORDING=recordings/$(basename "$recording")
 export WAVEGRASP_RUNS=$outdir WAVEGRASP_OUT=/runs
 export WAVEGRASP_ROUTER_PUBLISH=127.0.0.1:$(python3 -c \
   'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
-compose=(docker-compose -p "${WAVEGRASP_COMPOSE_PROJECT:-wavegrasp-test}" -f docker-compose.yml)
+compose=(docker-compose -p "${WAVEGRASP_COMPOSE_PROJECT:-wavegrasp-test}" "${files[@]}")
 trap '"${compose[@]}" down --volumes --remove-orphans >/dev/null 2>&1 || true' EXIT
 log "docker-compose up on $recording -> $outdir (pace ${WAVEGRASP_PACE:-realtime})"
 "${compose[@]}" up --no-build --abort-on-container-exit --exit-code-from player

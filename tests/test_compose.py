@@ -22,6 +22,7 @@ def test_compose_file_follows_the_compose_specification() -> None:
         pytest.skip(f"{SPEC} not beside the checkout")
     validator = jsonschema.Draft7Validator(json.loads(SPEC.read_text()))
     validator.validate(yaml.safe_load(COMPOSE.read_text()))
+    validator.validate(yaml.safe_load((ROOT / "ops" / "compose-rt-cgroup-v1.yml").read_text()))
 
 
 def test_every_service_runs_a_wavegrasp_command_from_one_image() -> None:
