@@ -20,6 +20,7 @@ from wavegrasp.planner.collision import extent, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.wavetank.record import arm_mount
+from wavegrasp.wavetank.scenario import paper_scenario
 
 from conftest import Router
 
@@ -46,7 +47,7 @@ def arm() -> ArmModel:
 
 @pytest.fixture(scope="module")
 def T_world_base() -> np.ndarray:
-    position, quat = arm_mount()
+    position, quat = arm_mount(paper_scenario(1, "buoy"))
     from scipy.spatial.transform import Rotation
 
     T = np.eye(4)

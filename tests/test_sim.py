@@ -13,6 +13,7 @@ from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import ObjectShape, SimWorld
 from wavegrasp.wavetank.record import arm_mount, pose_matrix
+from wavegrasp.wavetank.scenario import paper_scenario
 
 OMEGA = 2 * np.pi / 1.08
 CAN = ObjectShape("cylinder", 0.033, 0.122)
@@ -34,7 +35,7 @@ def arm() -> ArmModel:
 
 @pytest.fixture(scope="module")
 def T_world_base() -> np.ndarray:
-    return pose_matrix(*arm_mount())
+    return pose_matrix(*arm_mount(paper_scenario(1, "buoy")))
 
 
 def plan_for(arm: ArmModel, T_world_base: np.ndarray, offset=(0.0, 0.0, 0.0)

@@ -12,7 +12,8 @@ from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.wavetank.analysis import dominant_period
 from wavegrasp.wavetank.body import OBJECTS, TetheredBody
-from wavegrasp.wavetank.record import DEPTH_M, RecordConfig, main, simulate, slack_warning
+from wavegrasp.wavetank.record import RecordConfig, main, simulate, slack_warning
+from wavegrasp.wavetank.scenario import TANK_DEPTH_M as DEPTH_M
 from wavegrasp.wavetank.waves import (
     TABLE_I,
     G,

@@ -31,15 +31,20 @@ from wavegrasp.wavetank.camera import (
     sphere_mesh,
     transform,
 )
-from wavegrasp.wavetank.waves import TABLE_I, jonswap_sea, regular_sea
+from wavegrasp.wavetank.scenario import (
+    NAMED,
+    PAPER_CAMERA_EYE,
+    TANK_REST_HEIGHT_M,
+    CameraSpec,
+    ObjectModel,
+    Scenario,
+    load_scenario,
+    paper_scenario,
+)
+from wavegrasp.wavetank.waves import TABLE_I, WaveCondition, jonswap_sea, regular_sea
 
 GENERATOR_VERSION = "1"
-DEPTH_M = 0.93
-CENTROID_HEIGHT_M = 0.525
 ANCHOR = np.zeros(3)
-CAMERA_EYE = np.array([0.0, -1.0, 0.75])
-CAMERA_TARGET = np.array([0.0, 0.0, 0.5])
-ARM_BASE = np.array([0.30, -0.60, 0.40])
 TETHER_RADIUS_M = 0.002
 T0_NS = 1_700_000_000 * 10**9  # recordings start at a fixed epoch: same seed, same bytes
 
@@ -79,12 +84,35 @@ class RecordConfig:
         if self.groundtruth_hz * self.dt_s > 1 or ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
             raise ValueError("need dt_s <= 1/groundtruth_hz, and rate_hz dividing groundtruth_hz")
 
+    def to_scenario(self) -> Scenario:
+        """The paper's configuration with this config's changes, as a scenario."""
+        self.check()
+        obj = ObjectModel.named(self.object)
+        if self.object_scale != 1:
+            f = self.object_scale
+            base = OBJECTS[self.object]
+            obj = obj.model_copy(update={
+                "diameter_m": obj.diameter_m * f, "mass_kg": obj.mass_kg * f**3,
+                "length_m": obj.length_m * f if obj.length_m is not None else None,
+                # the tether keeps its length: the centroid moves by the attachment's offset
+                "rest_height_m": TANK_REST_HEIGHT_M + base.attach_offset * (f - 1),
+                "name": f"{self.object}x{f:g}"})
+        eye = tuple(float(v) for v in np.add(PAPER_CAMERA_EYE, self.camera_offset))
+        camera = CameraSpec(eye=eye, rate_hz=self.rate_hz, **self.camera)
+        sea = paper_scenario(self.wave, self.object).sea
+        if self.irregular:
+            sea = sea.model_copy(update={"kind": "jonswap"})
+        return Scenario(name=f"paper-w{self.wave}-{self.object}", sea=sea, object=obj,
+                        camera=camera, seconds=self.seconds, seed=self.seed,
+                        preroll_s=self.preroll_s, groundtruth_hz=self.groundtruth_hz,
+                        dt_s=self.dt_s)
 
-def arm_mount() -> tuple[np.ndarray, np.ndarray]:
-    """``bravo_base_link`` in world: position and quaternion (x, y, z, w), x towards the object."""
-    to_object = np.array([0.0, 0.0, CENTROID_HEIGHT_M]) - ARM_BASE
-    yaw = np.arctan2(to_object[1], to_object[0])
-    return ARM_BASE, Rotation.from_euler("z", yaw).as_quat(canonical=True)
+
+def arm_mount(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """``bravo_base_link`` in world: position and quaternion (x, y, z, w)."""
+    yaw = scenario.mount_yaw()
+    return np.asarray(scenario.mount.position), Rotation.from_euler("z", yaw).as_quat(
+        canonical=True)
 
 
 def pose_matrix(position: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
@@ -111,32 +139,32 @@ class Trajectory:
     tether_length: float
 
 
-def object_spec(cfg: RecordConfig) -> ObjectSpec:
-    spec = OBJECTS[cfg.object]
-    return spec.scaled(cfg.object_scale) if cfg.object_scale != 1 else spec
+def as_scenario(what: RecordConfig | Scenario) -> Scenario:
+    return what if isinstance(what, Scenario) else what.to_scenario()
 
 
-def simulate(cfg: RecordConfig) -> Trajectory:
-    """Run the tank's physics for ``cfg`` (after ``preroll_s`` for transients to die out)."""
-    cfg.check()
-    sea_rng = np.random.default_rng(cfg.seed).spawn(2)[0]
-    cond = TABLE_I[cfg.wave]
-    sea = (jonswap_sea if cfg.irregular else regular_sea)(cond, DEPTH_M, sea_rng)
-    spec = object_spec(cfg)
-    body = TetheredBody(spec, sea, ANCHOR, CENTROID_HEIGHT_M - OBJECTS[cfg.object].attach_offset)
-    t = -cfg.preroll_s
+def simulate(what: RecordConfig | Scenario) -> Trajectory:
+    """Run the tank's physics (after ``preroll_s`` for transients to die out)."""
+    s = as_scenario(what)
+    sea_rng = np.random.default_rng(s.seed).spawn(2)[0]
+    cond = WaveCondition(0, s.sea.height_m, s.sea.period_s, 0.0, 0.0)
+    make_sea = jonswap_sea if s.sea.kind == "jonswap" else regular_sea
+    sea = make_sea(cond, s.sea.depth_m, sea_rng, current=(s.sea.current_mps, s.sea.current_deg))
+    spec = s.object.spec()
+    body = TetheredBody(spec, sea, ANCHOR, s.object.rest_height_m - spec.attach_offset)
+    t = -s.preroll_s
     while t < 0:
-        body.step(t, cfg.dt_s)
-        t += cfg.dt_s
+        body.step(t, s.dt_s)
+        t += s.dt_s
     body.slack_steps = body.steps = 0
-    every = int(round(1 / (cfg.groundtruth_hz * cfg.dt_s)))
-    n = int(round(cfg.seconds * cfg.groundtruth_hz))
+    every = int(round(1 / (s.groundtruth_hz * s.dt_s)))
+    n = int(round(s.seconds * s.groundtruth_hz))
     pos, quat = np.empty((n, 3)), np.empty((n, 4))
     for i in range(n * every):
         if i % every == 0:
             pos[i // every], quat[i // every] = body.p, body.orientation()
-        body.step(i * cfg.dt_s, cfg.dt_s)
-    return Trajectory(np.arange(n) / cfg.groundtruth_hz, pos, quat, body.slack_fraction, spec,
+        body.step(i * s.dt_s, s.dt_s)
+    return Trajectory(np.arange(n) / s.groundtruth_hz, pos, quat, body.slack_fraction, spec,
                       body.tether_length)
 
 
@@ -151,30 +179,35 @@ def scene(traj: Trajectory, i: int, shape: Mesh, seabed: Mesh) -> list[Mesh]:
             transform(tether, pose_matrix((ANCHOR + tether_end) / 2, q)), seabed]
 
 
-def generate(cfg: RecordConfig, out: Path, progress: bool = False) -> dict[str, float]:
+def generate(what: RecordConfig | Scenario, out: Path,
+             progress: bool = False) -> dict[str, float]:
     """Write the recording to ``out``; returns facts about it (slack fraction, timing...)."""
     started = time.perf_counter()
-    traj = simulate(cfg)
-    cam_rng = np.random.default_rng(cfg.seed).spawn(2)[1]
-    eye = CAMERA_EYE + np.asarray(cfg.camera_offset, dtype=float)
-    T_cam = look_at(eye, CAMERA_TARGET)
-    camera = TrisectCamera(T_world_optical=T_cam, **cfg.camera)
+    s = as_scenario(what)
+    traj = simulate(s)
+    cam_rng = np.random.default_rng(s.seed).spawn(2)[1]
+    eye = np.asarray(s.camera.eye, dtype=float)
+    T_cam = look_at(eye, np.asarray(s.camera.target, dtype=float))
+    camera = TrisectCamera(T_world_optical=T_cam, **s.camera.sensor())
     spec = traj.spec
     shape = sphere_mesh(spec.radius) if spec.shape == "sphere" else cylinder_mesh(
         spec.radius, spec.length)
     seabed = seabed_mesh(4.0, 4.0)
-    arm_pos, arm_q = arm_mount()
+    arm_pos, arm_q = arm_mount(s)
     cam_q = Rotation.from_matrix(T_cam[:3, :3]).as_quat(canonical=True)
     tfs = [("world", "trisect_optical", eye, cam_q), ("world", "bravo_base_link", arm_pos, arm_q)]
-    frame_every = int(round(cfg.groundtruth_hz / cfg.rate_hz))
-    tf_every = int(round(cfg.groundtruth_hz))
+    frame_every = int(round(s.groundtruth_hz / s.camera.rate_hz))
+    tf_every = int(round(s.groundtruth_hz))
+    wave, object_name = NAMED.get(s.name, ("", spec.name))
     meta = {"generator": "wavegrasp.wavetank", "generator_version": GENERATOR_VERSION,
-            "wave": str(cfg.wave), "object": cfg.object, "seed": str(cfg.seed),
-            "sea": "jonswap" if cfg.irregular else "regular", "seconds": f"{cfg.seconds:g}",
-            "water_depth_m": f"{DEPTH_M}", "tether_length_m": f"{traj.tether_length:.4f}",
-            "object_scale": f"{cfg.object_scale:g}", "object_radius_m": f"{spec.radius:g}",
+            "wave": str(wave), "object": object_name, "seed": str(s.seed),
+            "sea": s.sea.kind, "seconds": f"{s.seconds:g}",
+            "water_depth_m": f"{s.sea.depth_m}", "tether_length_m": f"{traj.tether_length:.4f}",
+            "object_scale": f"{spec.radius / OBJECTS[object_name].radius:g}"
+            if object_name in OBJECTS else "1", "object_radius_m": f"{spec.radius:g}",
             "object_length_m": f"{spec.length:g}", "object_shape": spec.shape,
-            "camera_eye": " ".join(f"{v:g}" for v in eye)}
+            "camera_eye": " ".join(f"{v:g}" for v in eye),
+            "scenario": s.model_dump_json()}
     points = []
     with RecordingWriter(out, meta) as w:
         for i in tqdm(range(len(traj.times_s)), disable=not progress, file=sys.stderr,
@@ -193,40 +226,60 @@ def generate(cfg: RecordConfig, out: Path, progress: bool = False) -> dict[str, 
     return {**facts, "generation_s": time.perf_counter() - started}
 
 
-def parse_args(argv: list[str] | None) -> RecordConfig | tuple[RecordConfig, Path]:
+def parse_args(argv: list[str] | None) -> tuple[Scenario, Path]:
+    """The scenario to record and where; raises ValueError naming what is wrong."""
     p = argparse.ArgumentParser(prog="wavegrasp record", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--wave", type=int, required=True, choices=sorted(TABLE_I))
-    p.add_argument("--object", required=True, choices=sorted(OBJECTS))
-    p.add_argument("--seconds", type=float, required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", help="a scenario file (YAML or JSON) or a named scenario "
+                   f"({', '.join(list(NAMED)[:2])}, ...); other options then override its own")
+    p.add_argument("--wave", type=int, choices=sorted(TABLE_I))
+    p.add_argument("--object", choices=sorted(OBJECTS))
+    p.add_argument("--seconds", type=float)
+    p.add_argument("--seed", type=int)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--irregular", action="store_true", help="JONSWAP sea with the same Hs/Tp")
-    p.add_argument("--rate", type=float, default=10.0, help="camera frames per second")
+    p.add_argument("--rate", type=float, help="camera frames per second (default 10)")
     p.add_argument("--object-scale", type=float, default=1.0, help="object size factor")
     p.add_argument("--camera-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0),
                    metavar=("DX", "DY", "DZ"), help="move the camera, metres in world")
-    p.add_argument("--width", type=int, default=320, help="camera pixels across")
-    p.add_argument("--height", type=int, default=240, help="camera pixels down")
+    p.add_argument("--width", type=int, help="camera pixels across (default 320)")
+    p.add_argument("--height", type=int, help="camera pixels down (default 240)")
     a = p.parse_args(argv)
-    cfg = RecordConfig(wave=a.wave, object=a.object, seconds=a.seconds, seed=a.seed,
-                       irregular=a.irregular, rate_hz=a.rate, object_scale=a.object_scale,
-                       camera_offset=tuple(a.camera_offset),
-                       camera={"width": a.width, "height": a.height})
-    return cfg, a.out
+    if a.scenario:
+        if a.wave or a.object or a.irregular or a.object_scale != 1 or any(a.camera_offset):
+            p.error("--scenario describes the sea, object and camera: drop --wave, --object, "
+                    "--irregular, --object-scale and --camera-offset")
+        scenario = load_scenario(a.scenario)
+    else:
+        if a.wave is None or a.object is None or a.seconds is None:
+            p.error("give --scenario, or --wave, --object and --seconds")
+        camera = {k: v for k, v in (("width", a.width), ("height", a.height)) if v is not None}
+        scenario = RecordConfig(wave=a.wave, object=a.object, seconds=a.seconds,
+                                seed=a.seed or 0, irregular=a.irregular,
+                                rate_hz=a.rate or 10.0, object_scale=a.object_scale,
+                                camera_offset=tuple(a.camera_offset),
+                                camera=camera).to_scenario()
+    camera_changes = {k: v for k, v in (("rate_hz", a.rate), ("width", a.width),
+                                         ("height", a.height)) if v is not None}
+    changes = {k: v for k, v in (("seconds", a.seconds), ("seed", a.seed)) if v is not None}
+    if camera_changes:
+        changes["camera"] = scenario.camera.model_copy(update=camera_changes)
+    if changes:  # validated again as a whole
+        scenario = Scenario(**{**dict(scenario), **changes})
+    return scenario, a.out
 
 
 def main(argv: list[str] | None = None) -> int:
-    cfg, out = parse_args(argv)
     try:
+        scenario, out = parse_args(argv)
         out.parent.mkdir(parents=True, exist_ok=True)
-        facts = generate(cfg, out, progress=True)
+        facts = generate(scenario, out, progress=True)
     except (ValueError, OSError) as exc:
         print(f"wavegrasp record: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {out}: {facts['frames']} frames, {facts['points_per_frame']:.0f} points a "
-          f"frame, {cfg.seconds / facts['generation_s']:.1f}x real time", file=sys.stderr)
-    warning = slack_warning(cfg.object, facts["slack_fraction"])
+          f"frame, {scenario.seconds / facts['generation_s']:.1f}x real time", file=sys.stderr)
+    warning = slack_warning(scenario.object.name, facts["slack_fraction"])
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
     return 0

@@ -139,24 +139,27 @@ class Sea:
         return turn @ u + su, turn @ a + sa
 
 
-def default_sway(rng: np.random.Generator) -> Sway:
-    """The tank's slow flow: 1 cm/s mean current at 20° to the waves, a 1 cm/s longitudinal
-    seiche (period 2·104 m/√(g·0.93 m) ≈ 69 s for a 104 m flume), a 0.8 cm/s transverse
-    circulation of 23 s, and the orbital plane swaying ±3° over 40 s; random phases."""
-    angle = np.deg2rad(20.0)
-    return Sway(mean_current=(0.01 * np.cos(angle), 0.01 * np.sin(angle)), seiche_mps=0.01,
+def default_sway(rng: np.random.Generator, current: tuple[float, float] = (0.01, 20.0)) -> Sway:
+    """The tank's slow flow: a mean ``current`` (m/s, degrees from the waves' direction; 1 cm/s
+    at 20° in the tank), a 1 cm/s longitudinal seiche (period 2·104 m/√(g·0.93 m) ≈ 69 s for a
+    104 m flume), a 0.8 cm/s transverse circulation of 23 s, and the orbital plane swaying ±3°
+    over 40 s; random phases."""
+    speed, angle = current[0], np.deg2rad(current[1])
+    return Sway(mean_current=(speed * np.cos(angle), speed * np.sin(angle)), seiche_mps=0.01,
                 transverse_mps=0.008, plane_deg=3.0, phases=tuple(rng.uniform(0, 2 * np.pi, 3)))
 
 
 def regular_sea(cond: WaveCondition, depth: float, rng: np.random.Generator,
-                reflection: float = 0.08, modulation: float = 0.05) -> Sea:
+                reflection: float = 0.08, modulation: float = 0.05,
+                current: tuple[float, float] = (0.01, 20.0)) -> Sea:
     """The paper's regular wave, a ``reflection`` fraction travelling back from the beach,
     slow amplitude modulation and sway."""
     a = cond.height_m / 2
     w = 2 * np.pi / cond.period_s
     return Sea(depth=depth, amplitudes=np.array([a, reflection * a]), omegas=np.array([w, w]),
                directions=np.array([0.0, np.pi]), phases=rng.uniform(0, 2 * np.pi, 2),
-               modulation=(modulation, float(rng.uniform(25.0, 40.0))), sway=default_sway(rng))
+               modulation=(modulation, float(rng.uniform(25.0, 40.0))),
+               sway=default_sway(rng, current))
 
 
 def jonswap_spectrum(f: np.ndarray, hs: float, tp: float, gamma: float = 3.3) -> np.ndarray:
@@ -173,7 +176,7 @@ def jonswap_spectrum(f: np.ndarray, hs: float, tp: float, gamma: float = 3.3) ->
 
 
 def jonswap_sea(cond: WaveCondition, depth: float, rng: np.random.Generator,
-                n: int = 64) -> Sea:
+                n: int = 64, current: tuple[float, float] = (0.01, 20.0)) -> Sea:
     """Irregular sea with Hs = the condition's height and Tp = its period (γ = 3.3), ``n``
     components between 0.6 fp and 2.5 fp at jittered frequencies, random phases, and sway."""
     fp = 1.0 / cond.period_s
@@ -182,4 +185,4 @@ def jonswap_sea(cond: WaveCondition, depth: float, rng: np.random.Generator,
     amps = np.sqrt(2 * jonswap_spectrum(f, cond.height_m, cond.period_s) * np.diff(edges))
     return Sea(depth=depth, amplitudes=amps, omegas=2 * np.pi * f,
                directions=rng.normal(0.0, np.deg2rad(5.0), n),
-               phases=rng.uniform(0, 2 * np.pi, n), sway=default_sway(rng))
+               phases=rng.uniform(0, 2 * np.pi, n), sway=default_sway(rng, current))

@@ -1,0 +1,85 @@
+"""Scenarios: what a recording depends on, validated, and recorded from a file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from wavegrasp.recording_io.reader import open_recording
+from wavegrasp.recording_io.ros_msgs import decode_tf
+from wavegrasp.wavetank.record import RecordConfig, generate, main
+from wavegrasp.wavetank.scenario import NAMED, Scenario, load_scenario, paper_scenario
+
+from conftest import source_frames
+
+SPHERE = {"sea": {"height_m": 0.2, "period_s": 2.0},
+          "object": {"family": "sphere", "diameter_m": 0.15, "mass_kg": 0.4}}
+
+
+def write(tmp_path: Path, doc: dict, name: str = "s.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.mark.parametrize(("change", "problem"), [
+    ({"mount": {"position": [0.0, 0.6, 1.2]}}, "mount.position: z = 1.2 m is out of the water"),
+    ({"mount": {"position": [1.5, 0.6, 0.4]}}, "beyond its 1.000 m reach"),
+    ({"camera": {"eye": [0.0, 0.05, 0.52]}}, "camera.eye: inside or touching the object"),
+    ({"object": {"family": "cylinder", "diameter_m": 0.1, "mass_kg": 0.3}},
+     "object: length_m: a cylinder needs one"),
+    ({"object": {**SPHERE["object"], "rest_height_m": 0.9}}, "is not under water 0.93 m deep"),
+    ({"sea": {"height_m": 0.2, "period_s": 2.0, "colour": "blue"}}, "sea.colour: Extra inputs"),
+    ({"camera": {"rate_hz": -3}}, "camera.rate_hz: Input should be greater than 0"),
+])
+def test_a_scenario_that_cannot_be_is_refused_in_one_line(tmp_path: Path, change: dict,
+                                                          problem: str) -> None:
+    path = write(tmp_path, {**SPHERE, **change})
+    with pytest.raises(ValueError) as err:
+        load_scenario(path)
+    text = str(err.value)
+    assert text.startswith(f"{path}: ") and problem in text and "\n" not in text, text
+
+
+def test_the_papers_twelve_configurations_are_named_scenarios() -> None:
+    assert len(NAMED) == 12
+    s = load_scenario("paper-w1-buoy")
+    assert (s.sea.height_m, s.sea.period_s, s.object.family) == (0.25, 1.25, "sphere")
+    assert load_scenario("paper-w3-bottle").object.length_m == pytest.approx(0.16)
+    # A file holds the same scenario as its name.
+    assert Scenario(**json.loads(s.model_dump_json())) == s
+
+
+def test_a_paper_scenario_records_what_its_flags_recorded(tmp_path: Path) -> None:
+    """Today's flags are named scenarios: the same messages, byte for byte."""
+    flags = RecordConfig(wave=2, object="can_half", seconds=1.0, seed=3, preroll_s=1.0)
+    generate(flags, tmp_path / "flags.mcap")
+    named = paper_scenario(2, "can_half", seconds=1.0, seed=3, preroll_s=1.0)
+    generate(named, tmp_path / "named.mcap")
+    assert source_frames(tmp_path / "flags.mcap") == source_frames(tmp_path / "named.mcap")
+
+
+def test_record_scenario_places_the_mount_and_camera_where_the_file_says(
+        tmp_path: Path) -> None:
+    doc = {**SPHERE, "name": "sideways",
+           "mount": {"position": [0.0, 0.6, 0.45], "yaw_offset_deg": 90},
+           "camera": {"eye": [1.0, 0.3, 0.7], "rate_hz": 15, "width": 160, "height": 120},
+           "seconds": 2, "preroll_s": 1}
+    out = tmp_path / "sideways.mcap"
+    assert main(["--scenario", str(write(tmp_path, doc)), "--out", str(out)]) == 0
+    messages = list(open_recording(out).messages())
+    frames = [m for m in messages if m.topic == "/trisect/points"]
+    assert len(frames) == 30  # 15 Hz for 2 s
+    tf = {child: T for _, child, T in decode_tf(next(m for m in messages
+                                                     if m.topic == "/tf_static").cdr)}
+    mount = tf["bravo_base_link"]
+    assert np.allclose(mount[:3, 3], [0.0, 0.6, 0.45])
+    # Facing the object (yaw -90 deg) turned by 90 deg: the arm faces +x, the object on its right.
+    yaw = Rotation.from_matrix(mount[:3, :3]).as_euler("xyz")[2]
+    assert yaw == pytest.approx(0.0, abs=1e-9)
+    assert np.allclose(tf["trisect_optical"][:3, 3], [1.0, 0.3, 0.7])
