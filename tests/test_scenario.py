@@ -13,7 +13,16 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import decode_tf
 from wavegrasp.wavetank.record import RecordConfig, generate, main
-from wavegrasp.wavetank.scenario import NAMED, Scenario, load_scenario, paper_scenario
+from wavegrasp.wavetank.scenario import (
+    NAMED,
+    MountSpec,
+    Scenario,
+    SeaSpec,
+    default_arm,
+    load_scenario,
+    paper_scenario,
+)
+from wavegrasp.wavetank.suite import draw_scenarios, reach_verdict
 
 from conftest import source_frames
 
@@ -83,3 +92,35 @@ def test_record_scenario_places_the_mount_and_camera_where_the_file_says(
     yaw = Rotation.from_matrix(mount[:3, :3]).as_euler("xyz")[2]
     assert yaw == pytest.approx(0.0, abs=1e-9)
     assert np.allclose(tf["trisect_optical"][:3, 3], [1.0, 0.3, 0.7])
+
+
+def test_random_scenarios_are_deterministic_and_span_the_documented_ranges() -> None:
+    scenarios, refused = draw_scenarios(40, seed=0)
+    again, _ = draw_scenarios(40, seed=0)
+    assert scenarios == again and len(scenarios) == 40
+    assert all(": " in r and "\n" not in r for r in refused)  # each redraw says why
+    arm = default_arm()
+    for s in scenarios:
+        yaw = s.mount_yaw()
+        c, sn = np.cos(yaw), np.sin(yaw)
+        shoulder = np.asarray(s.mount.position) + np.array(
+            [[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ arm.shoulder
+        assert 0.4 - 1e-3 <= np.linalg.norm(shoulder - s.rest) <= 0.85 + 1e-3, s.name
+        assert -0.4 - 1e-3 <= shoulder[2] - s.rest[2] <= 0.2 + 1e-3, s.name
+        assert 0.5 - 1e-3 <= np.linalg.norm(np.asarray(s.camera.eye) - s.rest) <= 1.6 + 1e-3
+        assert 0.8 <= s.sea.period_s <= 2.5 and 0.05 <= s.sea.height_m <= 0.35
+        assert 5 <= s.camera.rate_hz <= 30
+        size = s.object.diameter_m
+        assert 0.06 <= size <= 0.18 if s.object.family == "sphere" else 0.04 <= size <= 0.12
+    families = {s.object.family for s in scenarios}
+    turned = [abs(s.mount.yaw_offset_deg) > 90 for s in scenarios]
+    assert families == {"sphere", "cylinder"} and any(turned) and not all(turned)
+
+
+def test_reach_is_judged_from_the_arm_model_over_the_whole_swing() -> None:
+    near = paper_scenario(2, "buoy")
+    assert reach_verdict(near) is None
+    # The same mount, the object now swinging in a sea twice as high and slower.
+    far = paper_scenario(2, "buoy", mount=MountSpec(position=(0.55, -0.55, 0.45)),
+                         sea=SeaSpec(height_m=0.35, period_s=2.5))
+    assert "beyond the arm's" in (reach_verdict(far) or "")

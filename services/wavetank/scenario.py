@@ -264,9 +264,14 @@ def load_scenario(source: str | Path) -> Scenario:
     try:
         return Scenario(**doc)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"])
-        msg = err["msg"].removeprefix("Value error, ")
-        raise ValueError(f"{path}: {where + ': ' if where else ''}{msg}") from None
+        raise ValueError(f"{path}: {describe(exc)}") from None
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
+
+
+def describe(exc: ValidationError) -> str:
+    """A scenario's first problem in one line: ``field.path: what is wrong``."""
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err["loc"])
+    msg = err["msg"].removeprefix("Value error, ")
+    return f"{where}: {msg}" if where else msg

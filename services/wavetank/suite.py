@@ -1,0 +1,129 @@
+"""Random scenarios drawn from the ranges a user's vehicle, object and sea may span.
+
+Ranges (regular seas; irregular ones come with their own suite):
+- sea: height 0.05-0.35 m, period 0.8-2.5 s, current 0-5 cm/s in any direction; the water
+  0.3-0.6 m deeper than the object's rest height;
+- object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; 25-75 % of the
+  displaced water's mass (buoyant enough to keep the tether taut); rest 0.3-0.7 m up;
+- arm mount: its shoulder 0.4-0.85 m from the object's rest position, at any bearing, from 0.4 m
+  below to 0.2 m above it, the mount turned -180..180 deg from facing it;
+- camera: 0.5-1.6 m from the object at any bearing, 0-40 deg above it, looking at it; 5-30 Hz.
+
+:func:`draw_scenarios` is deterministic in its seed. A draw that cannot be (the camera or the
+mount out of the water, beyond the arm's reach) is refused by :class:`Scenario` and drawn
+again; :func:`reach_verdict` says, from the arm model alone, whether the arm can reach the
+object's whole swing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import ValidationError
+
+from wavegrasp.wavetank.scenario import (
+    CameraSpec,
+    MountSpec,
+    ObjectModel,
+    Scenario,
+    SeaSpec,
+    default_arm,
+    describe,
+)
+from wavegrasp.wavetank.waves import wavenumber
+
+RESOLUTIONS = ((320, 240), (256, 192), (400, 300))
+RATES_HZ = (5.0, 10.0, 15.0, 20.0, 30.0)
+
+
+def draw_object(rng: np.random.Generator) -> ObjectModel:
+    family = "sphere" if rng.random() < 0.5 else "cylinder"
+    if family == "sphere":
+        d = rng.uniform(0.06, 0.18)
+        volume, length, cd, ca = math.pi * d**3 / 6, None, 0.5, 0.5
+    else:
+        d, length = rng.uniform(0.04, 0.12), rng.uniform(0.08, 0.32)
+        volume, cd, ca = math.pi * d**2 / 4 * length, 0.8, 0.6
+    mass = 1000.0 * volume * rng.uniform(0.25, 0.75)
+    return ObjectModel(family=family, diameter_m=round(d, 4),
+                       length_m=None if length is None else round(length, 4),
+                       mass_kg=round(mass, 4), rest_height_m=round(rng.uniform(0.3, 0.7), 3),
+                       drag_coefficient=cd, added_mass_coefficient=ca,
+                       name=f"{family}-{d * 100:.0f}cm")
+
+
+def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int) -> Scenario:
+    """One draw; raises ValueError if it cannot be."""
+    obj = draw_object(rng)
+    rest = np.array([0.0, 0.0, obj.rest_height_m])
+    depth = obj.rest_height_m + obj.bounding_radius_m + rng.uniform(0.3, 0.6)
+    sea = SeaSpec(height_m=round(rng.uniform(0.05, 0.35), 3),
+                  period_s=round(rng.uniform(0.8, 2.5), 3), depth_m=round(depth, 3),
+                  current_mps=round(rng.uniform(0.0, 0.05), 3),
+                  current_deg=round(rng.uniform(-180, 180), 1))
+    arm = default_arm()
+    distance, bearing = rng.uniform(0.4, 0.85), rng.uniform(-math.pi, math.pi)
+    rise = rng.uniform(-0.4, 0.2)  # the shoulder's height above the object's rest
+    across = math.sqrt(max(distance**2 - rise**2, 1e-6))
+    shoulder = rest + np.array([across * math.cos(bearing), across * math.sin(bearing), rise])
+    yaw_offset = rng.uniform(-180.0, 180.0)
+    yaw = math.atan2(-shoulder[1], -shoulder[0]) + math.radians(yaw_offset)
+    c, s = math.cos(yaw), math.sin(yaw)
+    base = shoulder - np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ arm.shoulder
+    # The yaw that faces the object from the base differs a little from the shoulder's.
+    facing = math.atan2(-base[1], -base[0])
+    mount = MountSpec(position=tuple(round(float(v), 4) for v in base),
+                      yaw_offset_deg=round(math.degrees(yaw - facing), 2))
+    cam_d, cam_b = rng.uniform(0.5, 1.6), rng.uniform(-math.pi, math.pi)
+    cam_el = math.radians(rng.uniform(0.0, 40.0))
+    eye = rest + cam_d * np.array([math.cos(cam_el) * math.cos(cam_b),
+                                   math.cos(cam_el) * math.sin(cam_b), math.sin(cam_el)])
+    width, height = RESOLUTIONS[rng.integers(len(RESOLUTIONS))]
+    camera = CameraSpec(eye=tuple(round(float(v), 4) for v in eye),
+                        target=tuple(float(v) for v in rest), width=width, height=height,
+                        rate_hz=RATES_HZ[rng.integers(len(RATES_HZ))],
+                        max_range_m=max(3.0, cam_d + 1.5))
+    return Scenario(name=name, sea=sea, object=obj, mount=mount, camera=camera,
+                    seconds=seconds, seed=seed)
+
+
+def draw_scenarios(n: int, seed: int, seconds: float = 60.0,
+                   max_tries: int = 50) -> tuple[list[Scenario], list[str]]:
+    """``n`` scenarios drawn with ``seed``; also why the draws that could not be were not."""
+    rng = np.random.default_rng(seed)
+    scenarios, refused = [], []
+    for i in range(n):
+        for _ in range(max_tries):
+            try:
+                scenarios.append(draw_scenario(rng, f"random-{seed}-{i:03d}", seconds,
+                                               seed * 1000 + i))
+                break
+            except ValidationError as exc:
+                refused.append(describe(exc))
+        else:
+            raise ValueError(f"no scenario could be drawn in {max_tries} tries")
+    return scenarios, refused
+
+
+def reach_verdict(s: Scenario) -> str | None:
+    """Why the arm cannot reach the object over its whole swing, judged from the arm model
+    (the shoulder's distance to the farthest point of the tether's sphere the wave may carry
+    the object to), or None."""
+    arm = default_arm()
+    yaw = s.mount_yaw()
+    c, sn = math.cos(yaw), math.sin(yaw)
+    shoulder = np.asarray(s.mount.position) + np.array(
+        [[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]) @ arm.shoulder
+    # The swing's horizontal half-width is at most the wave's orbital excursion at the
+    # surface, a generous bound: H/2 / tanh(k h).
+    k = wavenumber(2 * math.pi / s.sea.period_s, s.sea.depth_m)
+    swing = s.sea.height_m / 2 / math.tanh(k * s.sea.depth_m)
+    rest = s.rest
+    farthest = float(np.linalg.norm(rest[:2] - shoulder[:2])) + swing
+    distance = math.hypot(farthest, rest[2] - shoulder[2])
+    if distance > arm.reach_m:
+        return (f"the swing reaches {distance:.2f} m from the shoulder, beyond the arm's "
+                f"{arm.reach_m:.2f} m")
+    return None
+
