@@ -152,7 +152,7 @@ PLAYER_REFUSES = {
     "header_only.mcap": "contains none of the topics /trisect/points, /tf_static, "
                         "/groundtruth/object (truncated after",
     "cut_in_first_chunk.mcap": "(no summary or footer): it ends inside a chunk that starts at "
-                               "byte 408)",
+                               "byte {first_chunk})",
     "json_only.mcap": "contains none of the topics /trisect/points, /tf_static, "
                       "/groundtruth/object; it has /trisect/points (json, jsonschema)",
     "protobuf.mcap": "it has /trisect/points (protobuf, protobuf)",
@@ -203,9 +203,11 @@ def one_clear_line(err: str, path: Path, problem: str, command: str) -> None:
 
 
 @pytest.mark.parametrize("name", sorted(PLAYER_REFUSES))
-def test_player_names_the_file_and_the_problem(name: str, bad: dict[str, Path], capsys) -> None:
+def test_player_names_the_file_and_the_problem(name: str, bad: dict[str, Path], tank: Path,
+                                               capsys) -> None:
     assert player.main([str(bad[name])]) == 2
-    one_clear_line(capsys.readouterr().err, bad[name], PLAYER_REFUSES[name], "player")
+    problem = PLAYER_REFUSES[name].format(first_chunk=chunk_offsets(tank)[0][0])
+    one_clear_line(capsys.readouterr().err, bad[name], problem, "player")
 
 
 @pytest.mark.parametrize("name", sorted(LATENCY_REFUSES))
