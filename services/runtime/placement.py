@@ -117,7 +117,7 @@ def realtime_hint(priority: int) -> str:
                                    Path("/sys/fs/cgroup/cpu/cpu.rt_runtime_us")) if p.exists())
         if int(runtime.read_text()) == 0:
             return ("this cgroup has no real-time runtime (cgroup v1: dockerd --cpu-rt-runtime "
-                    "and compose's cpu_rt_runtime, WAVEGRASP_CPU_RT_RUNTIME)")
+                    "and compose's cpu_rt_runtime, ops/compose-rt-cgroup-v1.yml)")
     except (OSError, ValueError, StopIteration, IndexError):
         pass
     return "it needs CAP_SYS_NICE, e.g. compose's cap_add: [SYS_NICE], or an rtprio limit"

@@ -170,6 +170,13 @@ class Scenario(Strict):
         """The object's rest position, shape (3,), metres, world."""
         return np.array([0.0, 0.0, self.object.rest_height_m])
 
+    def shoulder(self) -> np.ndarray:
+        """The arm's shoulder (our Bravo-7-like model), shape (3,), metres, world."""
+        yaw = self.mount_yaw()
+        c, sn = math.cos(yaw), math.sin(yaw)
+        R = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        return np.asarray(self.mount.position) + R @ default_arm().shoulder
+
     def mount_yaw(self) -> float:
         """The mount's yaw about z, radians: facing the object's rest, plus the offset."""
         to_object = self.rest - np.asarray(self.mount.position)
@@ -212,11 +219,7 @@ def check_can_be(s: Scenario) -> None:
 def arm_reach_problem(s: Scenario) -> str | None:
     """Why the arm (our Bravo-7-like model) cannot reach the object's rest position, if so."""
     arm = default_arm()
-    yaw = s.mount_yaw()
-    c, sn = math.cos(yaw), math.sin(yaw)
-    R = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
-    shoulder = np.asarray(s.mount.position) + R @ arm.shoulder
-    distance = float(np.linalg.norm(s.rest - shoulder))
+    distance = float(np.linalg.norm(s.rest - s.shoulder()))
     if distance > arm.reach_m:
         return (f"the object's rest position is {distance:.3f} m from the arm's shoulder, "
                 f"beyond its {arm.reach_m:.3f} m reach")

@@ -111,10 +111,7 @@ def reach_verdict(s: Scenario) -> str | None:
     (the shoulder's distance to the farthest point of the tether's sphere the wave may carry
     the object to), or None."""
     arm = default_arm()
-    yaw = s.mount_yaw()
-    c, sn = math.cos(yaw), math.sin(yaw)
-    shoulder = np.asarray(s.mount.position) + np.array(
-        [[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]) @ arm.shoulder
+    shoulder = s.shoulder()
     # The swing's horizontal half-width is at most the wave's orbital excursion at the
     # surface, a generous bound: H/2 / tanh(k h).
     k = wavenumber(2 * math.pi / s.sea.period_s, s.sea.depth_m)
