@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import socket
@@ -159,4 +160,8 @@ def test_killed_recorder_loses_at_most_a_second_and_goes_on_in_a_new_file(
     after = [m.log_time_ns for m in open_recording(tmp_path / "run" / "run-1.mcap").messages()
              if m.topic == "/trisect/points"]
     assert after and summary["files"] == ["run-1.mcap", "run.mcap"]
-    assert frames + len(after) >= 120 - 20, "at most ~2 s missing: the loss and the restart"
+    # Missing: at most the second of loss, plus the frames played while no recorder was up
+    # (its restart is bounded above; how long it takes depends on the machine's load).
+    down_frames = math.ceil((restart["back_s"] - restart["died_s"]) * 10)
+    missing = 120 - frames - len(after)
+    assert missing <= 10 + down_frames + 2, f"{missing} frames missing, {down_frames} while down"
