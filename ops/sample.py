@@ -34,23 +34,28 @@ def default_recording() -> Path:
     return cached_recording(**SAMPLE)
 
 
-def cached_recording(**config: object) -> Path:
+def cached_recording(scenario: object = None, **config: object) -> Path:
     """A wave-tank recording from the cache, generated (with a progress bar) on first use.
 
-    ``config`` holds :class:`~wavegrasp.wavetank.record.RecordConfig`'s fields (wave, object,
-    seconds, seed, ...); the file name says the main ones and a hash of all of them.
+    Either a :class:`~wavegrasp.wavetank.scenario.Scenario`, or ``config`` holding
+    :class:`~wavegrasp.wavetank.record.RecordConfig`'s fields (wave, object, seconds, seed,
+    ...); the file name says the main ones and a hash of all of them.
     """
     from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig, generate
 
-    cfg = RecordConfig(**config)
-    digest = hashlib.sha256(repr(cfg).encode()).hexdigest()[:8]
-    name = (f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
-            f"-v{GENERATOR_VERSION}-{digest}.mcap")
-    path = cache_dir() / "recordings" / name
+    if scenario is not None:
+        what = scenario
+        digest = hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:8]
+        stem = f"{scenario.name}-{scenario.seconds:g}s-seed{scenario.seed}"
+    else:
+        what = cfg = RecordConfig(**config)
+        digest = hashlib.sha256(repr(cfg).encode()).hexdigest()[:8]
+        stem = f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
+    path = cache_dir() / "recordings" / f"{stem}-v{GENERATOR_VERSION}-{digest}.mcap"
     if not path.exists():
         print(f"generating {path} (first use only)", file=sys.stderr)
         path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_suffix(".partial")
-        generate(cfg, partial, progress=sys.stderr.isatty())
+        partial = path.with_suffix(f".{os.getpid()}.partial")
+        generate(what, partial, progress=sys.stderr.isatty())
         partial.replace(path)
     return path

@@ -171,6 +171,10 @@ class GraspPlan(Message):
     candidates: list[Pose] = Field(
         default_factory=list, description="grasp poses checked in full for this plan, in "
         "order, the chosen one last; world")
+    standby: list[float] = Field(
+        default_factory=list, description="joint positions, in joint_names' order, the arm "
+        "returns to after the attempt: its home pose turned to face the object; empty: its "
+        "home pose")
 
 
 class GateDecision(Message):

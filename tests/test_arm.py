@@ -195,3 +195,18 @@ def test_capsules_batch_matches_one_at_a_time(arm: ArmModel) -> None:
             if np.allclose(c[0], T[:3, :3] @ hand0[0] + T[:3, 3], atol=1e-9)]
     assert len(palm) == 1
     np.testing.assert_allclose(palm[0][1], T[:3, :3] @ hand1[0] + T[:3, 3], atol=1e-9)
+
+
+def test_facing_turns_the_first_joint_towards_a_target_anywhere(arm: ArmModel) -> None:
+    for angle in np.radians([-150.0, -90.0, 0.0, 60.0, 120.0]):
+        target = arm.shoulder + 0.6 * np.array([np.cos(angle), np.sin(angle), -0.2])
+        q = arm.facing(target)
+        tool = arm.forward(q)[:3, 3]
+        assert np.arctan2(tool[1], tool[0]) == pytest.approx(angle, abs=1e-6)
+        np.testing.assert_allclose(q[1:], arm.q_home[1:])
+        # A grasp beside or behind the home pose's reach is found from its side.
+        T = np.eye(4)
+        T[:3, 3] = target
+        T[:3, :3] = [[0, -np.sin(angle), np.cos(angle)], [0, np.cos(angle), np.sin(angle)],
+                     [-1, 0, 0]]
+        assert arm.inverse(T, arm.q_home, max_iter=40, restarts=0) is not None

@@ -11,6 +11,7 @@ import pytest
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
     PredictedPath,
+    final_move,
     grasp_orientations,
     motion_direction,
     perpendicular,
@@ -18,7 +19,7 @@ from wavegrasp.planner.approach import (
 )
 from wavegrasp.planner.collision import extent, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 
@@ -171,3 +172,44 @@ def test_the_self_check_plans_at_start_and_says_when_it_cannot(
         assert "self-check: no grasp 0.56 m in front of the shoulder" in caplog.text
     finally:
         service.bus.close()
+
+
+def test_an_arm_looking_across_the_motion_gets_grasps_the_way_it_faces() -> None:
+    d = np.array([1.0, 0.0, 0.0])  # the object swings along x; the arm looks along +y at it
+    outwards = np.array([0.0, 0.9, 0.436])
+    axis = np.array([0.0, 0.0, 1.0])
+    preferred = -perpendicular(d, np.array([0.0, 0.0, 1.0]) - 0.5 * outwards)
+    paper = grasp_orientations(d, axis, preferred)
+    frames = grasp_orientations(d, axis, preferred, outwards=outwards)
+    assert max(R[:, 2] @ outwards for R in paper) < 0.25  # the paper's: across the arm
+    facing = frames[len(paper):]
+    assert max(R[:, 2] @ outwards for R in facing) > 0.99
+    for R in facing:
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert abs(R[:, 0] @ axis) < 1e-9 and R[:, 2][2] < 0.5
+        move = final_move(R, d)
+        assert abs(move @ R[:, 0]) < 0.6  # never along the closing direction into a finger
+    # The paper's frames still move in against the motion, inside the slot.
+    np.testing.assert_allclose(final_move(paper[0], d), -d, atol=1e-9)
+    head_on = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    np.testing.assert_allclose(final_move(head_on, d), [1.0, 0.0, 0.0])  # chases, never backs
+
+
+@pytest.mark.parametrize("bearing_deg, yaw_offset_deg", [(-90.0, 0.0), (-90.0, 100.0),
+                                                         (180.0, -60.0)])
+def test_an_arm_mounted_sideways_or_turned_away_plans_from_its_standby(
+        arm: ArmModel, bearing_deg: float, yaw_offset_deg: float) -> None:
+    """The shoulder across the motion or beside it, the mount turned away from the object:
+    from the standby pose that faces the object, most predictions get a plan."""
+    b = np.radians(bearing_deg)
+    shoulder = np.array([0.6 * np.cos(b), 0.6 * np.sin(b), 0.45])
+    yaw = np.arctan2(-shoulder[1], -shoulder[0]) + np.radians(yaw_offset_deg)
+    T_world_base = np.eye(4)
+    T_world_base[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
+                            [0, 0, 1]]
+    T_world_base[:3, 3] = shoulder - T_world_base[:3, :3] @ arm.shoulder
+    q_standby = standby_pose(arm, T_world_base, np.array([0.0, 0.0, 0.525]))
+    plans = [plan_grasp(prediction(now), now, arm, T_world_base, q_standby, BODY,
+                        PlannerConfig()) for now in 10.0 + np.arange(8) * 0.15]
+    assert sum(isinstance(p, Plan) for p in plans) >= 6, [p for p in plans
+                                                          if not isinstance(p, Plan)]

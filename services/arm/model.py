@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.resources
+import math
 from pathlib import Path
 
 import numpy as np
@@ -221,8 +222,26 @@ class ArmModel:
 
     # --- inverse kinematics ---------------------------------------------------------------
 
-    def _seeds(self, q_seed: np.ndarray, restarts: int | None = None) -> list[np.ndarray]:
-        return [q_seed, self.q_home, *self._restarts[:restarts]]
+    def _seeds(self, q_seed: np.ndarray, restarts: int | None = None,
+               target: np.ndarray | None = None) -> list[np.ndarray]:
+        facing = [] if target is None else [self.facing(target)]
+        return [q_seed, *facing, self.q_home, *self._restarts[:restarts]]
+
+    def facing(self, p: np.ndarray) -> np.ndarray:
+        """The home pose with the first joint turned so the arm faces ``p`` (array, shape
+        (3,), metres, frame base_link): array, shape (n,), radians, within limits. An arm
+        mounted at any yaw then starts its search on the object's side."""
+        q = self.q_home.copy()
+        if self._chain.movable[0].type == "prismatic":
+            return q
+        T, P, Z = self._chain.frames(q)
+        axis = Z[0]
+        flat = [v - (v @ axis) * axis for v in (T[:3, 3] - P[0], np.asarray(p) - P[0])]
+        if min(np.linalg.norm(v) for v in flat) < 1e-6:
+            return q
+        angle = math.atan2(float(axis @ np.cross(flat[0], flat[1])), float(flat[0] @ flat[1]))
+        q[0] = np.clip(q[0] + angle, self.lower[0], self.upper[0])
+        return q
 
     def _out_of_reach(self, p: np.ndarray, position_tol: float) -> bool:
         return float(np.linalg.norm(p - self.shoulder)) > self._reach_bound + position_tol
@@ -233,15 +252,16 @@ class ArmModel:
         """q (array, shape (n,), radians, within limits) with forward(q) within position_tol
         metres and angle_tol_deg degrees of T_target (array, shape (4, 4), frame base_link),
         or None if unreachable. Tries q_seed (array, shape (n,), radians) first, then the
-        home pose and fixed restarts (all, or the first ``restarts``; max_iter iterations
-        each); deterministic."""
+        home pose turned to face the target (:meth:`facing`), the home pose and fixed restarts
+        (all, or the first ``restarts``; max_iter iterations each); deterministic."""
         T_target = check_transform("T_target", T_target)
         q_seed = np.clip(check_vector("q_seed", q_seed, len(self.joint_names)),
                          self.lower, self.upper)
         if self._out_of_reach(T_target[:3, 3], position_tol):
             return None
-        return ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed, restarts),
-                        T_target[:3, 3], R_target=T_target[:3, :3], position_tol=position_tol,
+        return ik.solve(self._chain, self.lower, self.upper,
+                        self._seeds(q_seed, restarts, T_target[:3, 3]), T_target[:3, 3],
+                        R_target=T_target[:3, :3], position_tol=position_tol,
                         angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
 
     def inverse_position(self, p: np.ndarray, approach: np.ndarray, q_seed: np.ndarray,
@@ -257,7 +277,7 @@ class ArmModel:
                          self.lower, self.upper)
         if self._out_of_reach(p, position_tol):
             return None
-        q = ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed), p,
+        q = ik.solve(self._chain, self.lower, self.upper, self._seeds(q_seed, target=p), p,
                      approach=approach, position_tol=position_tol,
                      angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
         if q is None:

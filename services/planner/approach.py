@@ -104,16 +104,21 @@ def perpendicular(d: np.ndarray, towards: np.ndarray) -> np.ndarray:
 
 
 def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.ndarray,
-                       count: int = 7) -> list[np.ndarray]:
+                       count: int = 7, outwards: np.ndarray | None = None
+                       ) -> list[np.ndarray]:
     """Tool orientations for a grasp of an object arriving along ``d`` (unit, world), best
     first: arrays, shape (3, 3), columns x (the jaws close along it), y, z (the tool points
-    along it), world.
+    along it), world. A cylinder's (unit ``axis``) jaws always close across its axis.
 
-    The jaws close across the motion (x ⟂ d), so the final move along −d runs inside the
-    open slot between them; a cylinder's (unit ``axis``) also close across its axis. The tool
-    points anywhere from head-on against the motion (z = −d) to square to it (z ⟂ d, the
-    paper's side approach), never away from the object's arrival, never up from below (where
-    a tethered object's line is). Those nearest the ``preferred`` z (unit, ⟂ d) come first.
+    Two families. The paper's: the jaws close across the motion (x ⟂ d), so the final move
+    along −d runs inside the open slot between them; the tool points anywhere from head-on
+    against the motion (z = −d) to square to it (z ⟂ d, the side approach). The arm's own:
+    given ``outwards`` (unit, from the shoulder to the object), the tool points along it,
+    tilted up to 30°, with the jaws closing in any direction across it (and across the axis):
+    an arm that looks across the motion, or along it, grasps the way it faces, and its final
+    move is along the tool (see :func:`final_move`). Never up from below (where a tethered
+    object's line is). The paper's family comes first; in each, those nearest the
+    ``preferred`` z (unit) first.
     """
     if axis is not None and np.linalg.norm(cross(axis, d)) > 0.3:
         closings = [_unit(cross(axis, d))]
@@ -128,7 +133,53 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
             z = -np.cos(theta) * d + np.sin(theta) * w
             if z[2] < 0.5:
                 frames.append(np.column_stack([x, cross(z, x), z]))
-    return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
+    def best_first(frames: list[np.ndarray]) -> list[np.ndarray]:
+        return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
+
+    facing = [] if outwards is None else _facing_frames(outwards, axis, d)
+    return best_first(frames) + best_first(facing)
+
+
+def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None,
+                   d: np.ndarray) -> list[np.ndarray]:
+    """The arm's own family of :func:`grasp_orientations`: z along ``outwards``, along it
+    without its part along a cylinder's axis, and turned ±30° about the vertical; per z the
+    jaws close across the axis, or (a sphere) in four directions, across the motion first."""
+    zs = [outwards]
+    base = outwards if axis is None else outwards - (outwards @ axis) * axis
+    if np.linalg.norm(base) > 0.3:  # not looking along a cylinder's axis
+        base = _unit(base)
+        up = np.array([0.0, 0.0, 1.0])
+        zs += [base] + [np.cos(a) * base + np.sin(a) * cross(up, base)
+                        for a in np.radians([-30.0, 30.0, -60.0, 60.0, -90.0, 90.0])]
+    frames = []
+    for z in zs:
+        z = _unit(z)
+        if z[2] >= 0.5:
+            continue
+        if axis is not None:
+            if np.linalg.norm(cross(axis, z)) < 0.3:
+                continue
+            xs = [_unit(cross(axis, z))]
+        else:
+            first = perpendicular(z, d)
+            other = cross(z, first)
+            xs = [np.cos(a) * other + np.sin(a) * first for a in np.radians([0, 45, 90, 135])]
+        frames += [np.column_stack([x, cross(z, x), z]) for x in xs]
+    return frames
+
+
+def final_move(R: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The unit direction the hand moves in its last move onto the object, for a tool at
+    ``R`` (shape (3, 3), world) and an object arriving along ``d``: against the motion where
+    that keeps the object inside the slot between the jaws (the paper's), else straight in
+    along the tool."""
+    against = -d + (d @ R[:, 0]) * R[:, 0]
+    # Never backwards, palm first, out of the slot: a tool pointing the way the object
+    # moves goes straight in after it.
+    if np.linalg.norm(against) > 0.85 and against @ R[:, 2] > -0.2:
+        return _unit(against)
+    return R[:, 2]
 
 
 def offset_direction(d: np.ndarray, z: np.ndarray, towards: np.ndarray) -> np.ndarray:
@@ -140,14 +191,17 @@ def offset_direction(d: np.ndarray, z: np.ndarray, towards: np.ndarray) -> np.nd
 
 
 def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15,
-              count: int = 4, beta: float = 0.03, final_m: float = 0.06) -> np.ndarray:
+              count: int = 4, beta: float = 0.03, final_m: float = 0.06,
+              move: np.ndarray | None = None) -> np.ndarray:
     """P_init, the intermediate P_i (equation 9, β_i bowing outwards along n, largest midway)
-    and the pre-grasp point ``final_m`` ahead of the object along its motion ``d``, then P_f.
+    and the pre-grasp point ``final_m`` back from P_f along the final ``move`` (unit; by
+    default −d, against the object's motion ``d``), then P_f.
 
-    Returns array, shape (count + 2, 3): the last move, pre-grasp → P_f, is along −d.
+    Returns array, shape (count + 2, 3): the last move, pre-grasp → P_f, is along ``move``.
     """
+    move = -d if move is None else move
     p_init = p_f + alpha * n
-    pre = p_f + final_m * d
+    pre = p_f - final_m * move
     points = [p_init]
     for i in range(1, count):
         s = i / count

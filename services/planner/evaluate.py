@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from mcap.reader import make_reader
 from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
 from wavegrasp.planner.approach import PredictedPath
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.predictor.models import make_predictor
 from wavegrasp.recording_io.ros_msgs import decode_pose
 
@@ -21,23 +22,28 @@ from wavegrasp.recording_io.ros_msgs import decode_pose
 @dataclass
 class PlannerScore:
     """Warm predictions and plans made; planning times (ms); |P_f − truth at t_grasp| (m) of
-    the plans whose grasp time the recording still covers."""
+    the plans whose grasp time the recording still covers; why candidates were rejected,
+    over the predictions that got no plan."""
 
     attempts: int
     plans: int
     times_ms: np.ndarray
     grasp_errors: np.ndarray
+    rejected: Counter = field(default_factory=Counter)
 
 
 def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.ndarray | None],
           warmup_s: float = 10.0, cfg: PlannerConfig | None = None) -> PlannerScore:
     """Feed perception's centroids to the default predictor and plan on every warm forecast
-    after ``warmup_s``, from the arm's standby pose (as the planner does until arm states
-    arrive). ``body``: the object's (radius, half length, axis), as perception reports it."""
+    after ``warmup_s``, from the arm's standby pose facing where the object was seen during
+    the warm-up (:func:`~wavegrasp.planner.plan.standby_pose`, where the arm waits between
+    attempts). ``body``: the object's (radius, half length, axis), as perception reports it."""
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
-    times, errors, attempts, plans = [], [], 0, 0
+    times, errors, attempts, plans, rejected = [], [], 0, 0, Counter()
+    seen = track.centres[(track.stamps_ns - track.stamps_ns[0]) * 1e-9 < warmup_s]
+    q_standby = standby_pose(arm, T_world_base, np.nanmedian(seen, axis=0))
     for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
         if np.isnan(centre[0]):
             continue
@@ -49,14 +55,16 @@ def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.n
         path = PredictedPath(f.t0 + f.leads, f.positions, np.nan_to_num(f.sigma, nan=1.0),
                              f.period_s)
         start = time.perf_counter()
-        plan = plan_grasp(path, t, arm, T_world_base, arm.q_home, body, cfg)
+        plan = plan_grasp(path, t, arm, T_world_base, q_standby, body, cfg)
         times.append((time.perf_counter() - start) * 1e3)
         plans += isinstance(plan, Plan)
+        if not isinstance(plan, Plan):
+            rejected.update(plan)
         if isinstance(plan, Plan) and plan.t_grasp <= t_truth[-1]:
             truth = np.array([np.interp(plan.t_grasp, t_truth, track.truth[:, i])
                               for i in range(3)])
             errors.append(np.linalg.norm(plan.grasp_T_world[:3, 3] - truth))
-    return PlannerScore(attempts, plans, np.array(times), np.array(errors))
+    return PlannerScore(attempts, plans, np.array(times), np.array(errors), rejected)
 
 
 def approved_grasp_errors(run_mcap: Path) -> np.ndarray:

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
@@ -53,7 +53,7 @@ def vec(p: np.ndarray) -> Vec3:
 
 
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
-               service: str) -> GraspPlan:
+               service: str, standby: np.ndarray | None = None) -> GraspPlan:
     ns = lambda t: int(round(t * 1e9))  # noqa: E731
     t_ns = np.rint(plan.times * 1e9).astype(np.int64).tolist()
     grasp, *candidates = poses([plan.grasp_T_world, *plan.candidates])
@@ -71,7 +71,8 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                         for t, p in zip(t_ns, plan.tool.tolist(), strict=True)],
         confidence=plan.confidence, waypoints=[vec(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
-        t_close_ns=ns(plan.t_close), candidates=candidates))
+        t_close_ns=ns(plan.t_close), candidates=candidates,
+        standby=[] if standby is None else standby.tolist()))
 
 
 def poses(Ts: list[np.ndarray]) -> list[Pose]:
@@ -95,6 +96,8 @@ class PlannerService(Service):
         self.arm_moving = False
         self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
         self.busy_until_ns = 0
+        #: The object's mean observed centroid, metres, world (NaN until seen).
+        self.centre = np.full(3, np.nan)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
@@ -107,6 +110,9 @@ class PlannerService(Service):
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
+        if msg.centroid is not None:  # where the object sways: the arm waits facing it
+            c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
+            self.centre = c if np.isnan(self.centre[0]) else self.centre + 0.02 * (c - self.centre)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             axis = None if msg.axis is None else np.array([msg.axis.x, msg.axis.y, msg.axis.z])
             self.body = (msg.radius_m, (msg.length_m or 2 * msg.radius_m) / 2, axis)
@@ -209,7 +215,8 @@ class PlannerService(Service):
                 self.counters[f"rejected: {reason}"] += n
             return
         self.counters["plans"] += 1
-        plan = to_message(result, msg, d.recv_ns, self.arm, self.name)
+        plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
+                          standby_pose(self.arm, T_world_base, self.centre))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
 

@@ -1,8 +1,9 @@
 """Plan one grasp: pick the time, generate candidates, reject the unreachable, the colliding
 and the untimeable, and return the first that passes (candidates are ordered best first).
 
-A candidate that cannot be timed tells how long the arm needs; grasp times sooner than the
-quickest such need are then skipped, so a failing time costs one inverse kinematics each.
+A candidate that cannot be timed tells how long the arm needs; when every candidate at a grasp
+time was too slow, grasp times sooner than the quickest need are then skipped, so a failing
+time costs one inverse kinematics each.
 
 Times are seconds on the recording clock; positions metres. The arm's joint values are in its
 own model (radians); ``T_world_base`` places its mount ``bravo_base_link`` in ``world``.
@@ -19,6 +20,7 @@ from pydantic import BaseModel, Field
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
     PredictedPath,
+    final_move,
     grasp_orientations,
     grasp_times,
     motion_direction,
@@ -34,6 +36,10 @@ from wavegrasp.planner.timing import (
     segment,
     spline_path,
 )
+
+#: A finger's thickness along the final move, metres: the fingers are either side of the
+#: object once the tool point is this much nearer than the object's extent.
+FINGER_M = 0.015
 
 
 class PlannerConfig(BaseModel):
@@ -52,7 +58,8 @@ class PlannerConfig(BaseModel):
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
     max_times: int = Field(5, description="grasp times tried, each with every orientation")
-    max_orientations: int = Field(4, description="tool orientations tried per grasp time")
+    max_orientations: int = Field(8, description="tool orientations tried per grasp time (the "
+                                  "paper's family first, then the arm's own)")
     min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
                                 "to point back at itself: the least cosine between the tool's z "
                                 "and the direction from the shoulder to the object")
@@ -113,7 +120,8 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         # The paper's side approach from above the object and the arm's side of it first.
         towards = [0.0, 0.0, 1.0] - 0.5 * outwards
         quickest, tried_here = np.inf, 0
-        for R in grasp_orientations(d, body[2], -perpendicular(d, towards)):
+        for R in grasp_orientations(d, body[2], -perpendicular(d, towards),
+                                    outwards=outwards):
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
@@ -136,13 +144,23 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
                 return result
             reason, needed = result
             rejected[reason] += 1
-            if reason == "cannot be timed":
-                quickest = min(quickest, needed)
+            # Only when every pose at this time was too slow does a time this soon fail for
+            # all: a pose that failed otherwise might have been quicker.
+            quickest = min(quickest, needed if reason == "cannot be timed" else 0.0)
         if np.isfinite(quickest):
             need = max(need, quickest)
     if not rejected:
         rejected["no grasp time in the prediction"] += 1
     return rejected
+
+
+def standby_pose(arm: ArmModel, T_world_base: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Where the arm waits between attempts: its home pose turned to face the object's
+    ``centre`` (shape (3,), metres, world; NaN: not seen yet, the home pose). Radians, shape
+    (n,). An arm mounted at any yaw then starts every approach from the object's side."""
+    if np.isnan(centre).any():
+        return arm.q_home.copy()
+    return arm.facing((np.linalg.inv(T_world_base) @ np.append(centre, 1.0))[:3])
 
 
 def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
@@ -172,7 +190,8 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
     alpha = cfg.alpha_m + extent(body, n)
-    points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, cfg.final_m)
+    move = final_move(T_grasp[:3, :3], d)
+    points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, cfg.final_m, move)
     qs, seed = [], q_f
     for p in points[::-1]:  # from the grasp back to P_init, each seeding the next
         T = T_grasp.copy()
@@ -208,9 +227,17 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     speed = float(np.linalg.norm(path.velocity(t_g)))
     confidence = float(np.exp(-sigma / 0.01) / (1.0 + speed))
     # Narrow the jaw for the final move and start closing just in time: a jaw opened wide
-    # closes too slowly for an object that turns back right after the grasp time.
+    # closes too slowly for an object that turns back right after the grasp time. The
+    # opening also takes in how far the object moves along the closing direction x while
+    # the fingers are either side of it (nearly nothing when they close across the motion).
     width = 2.0 * body[0]
-    preshape = min(arm.jaw_max_opening_m, width + 2.0 * cfg.jaw_margin_m)
+    x = T_grasp[:3, 0]
+    rel = path.at(np.minimum(times, path.times_s[-1])) - tool  # object from the tool point
+    astride = (times >= final_from) & (np.abs(rel @ move) <= extent(body, move) + FINGER_M)
+    sweep = float(np.abs(rel[astride] @ x).max()) if astride.any() else 0.0
+    if width + 2.0 * sweep > arm.jaw_max_opening_m:
+        return "object would hit a finger", 0.0
+    preshape = min(arm.jaw_max_opening_m, width + 2.0 * (cfg.jaw_margin_m + sweep))
     t_close = t_g - (preshape - width) / arm.jaw_closing_mps
     return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence, final_from,
                 preshape, t_close)

@@ -63,6 +63,8 @@ class Attempt:
     #: plan was approved (recording s). Without them abrupt changes are not told apart.
     predicted: tuple[np.ndarray, np.ndarray] | None = None
     approved_at: float | None = None
+    #: Where the arm waits after the attempt, shape (n,), radians; None: its home pose.
+    standby: np.ndarray | None = None
 
     @classmethod
     def from_message(cls, plan: GraspPlan, joint_names: list[str]) -> Attempt:
@@ -82,6 +84,9 @@ class Attempt:
             if k and sample.t_ns <= s[k - 1].t_ns:
                 raise ValueError(f"plan {plan.plan_id}: joint_trajectory t_ns not strictly "
                                  f"increasing at sample {k}")
+        if plan.standby and len(plan.standby) != len(joint_names):
+            raise ValueError(f"plan {plan.plan_id}: standby has {len(plan.standby)} positions, "
+                             f"the arm {len(joint_names)} joints")
         t_grasp = plan.t_grasp_ns * 1e-9
         p = plan.grasp.position
         return cls(plan.plan_id, np.array([x.t_ns for x in s]) * 1e-9,
@@ -90,7 +95,8 @@ class Attempt:
                    np.array([p.x, p.y, p.z]),
                    (plan.t_final_ns or plan.t_grasp_ns) * 1e-9,
                    plan.jaw_preshape_m or 0.0,
-                   (plan.t_close_ns or plan.t_grasp_ns) * 1e-9)
+                   (plan.t_close_ns or plan.t_grasp_ns) * 1e-9,
+                   standby=np.array(plan.standby) if plan.standby else None)
 
 
 @dataclass
@@ -224,10 +230,12 @@ class Executor:
     def _finish(self, result: Result) -> Result:
         """Open the jaw and head back to standby (one ruckig move)."""
         w, arm = self.world, self.world.arm
+        standby = arm.q_home if self.attempt is None or self.attempt.standby is None else \
+            np.clip(self.attempt.standby, arm.lower, arm.upper)
         self.attempt = None
         w.set_jaw(arm.jaw_max_opening_m)
         q, _ = w.arm_q()
-        move = segment(q, np.zeros(len(q)), np.zeros(len(q)), arm.q_home, np.zeros(len(q)),
+        move = segment(q, np.zeros(len(q)), np.zeros(len(q)), standby, np.zeros(len(q)),
                        Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
         if move is not None:
             self._return = sample_segment(move, w.time_s, 0.02)

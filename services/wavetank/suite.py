@@ -53,6 +53,24 @@ def draw_object(rng: np.random.Generator) -> ObjectModel:
                        name=f"{family}-{d * 100:.0f}cm")
 
 
+def mount_at(rest: np.ndarray, distance_m: float, bearing_deg: float, rise_m: float,
+             yaw_offset_deg: float) -> MountSpec:
+    """The mount that puts the arm's shoulder ``distance_m`` from the object's ``rest``
+    (shape (3,), metres, world), at ``bearing_deg`` from it (0: along +x, the way the waves
+    run) and ``rise_m`` above it, the arm turned ``yaw_offset_deg`` from facing it."""
+    arm = default_arm()
+    bearing = math.radians(bearing_deg)
+    across = math.sqrt(max(distance_m**2 - rise_m**2, 1e-6))
+    shoulder = rest + np.array([across * math.cos(bearing), across * math.sin(bearing), rise_m])
+    yaw = math.atan2(rest[1] - shoulder[1], rest[0] - shoulder[0]) + math.radians(yaw_offset_deg)
+    c, s = math.cos(yaw), math.sin(yaw)
+    base = shoulder - np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ arm.shoulder
+    # The yaw that faces the object from the base differs a little from the shoulder's.
+    facing = math.atan2(rest[1] - base[1], rest[0] - base[0])
+    return MountSpec(position=tuple(round(float(v), 4) for v in base),
+                     yaw_offset_deg=round(math.degrees(yaw - facing), 2))
+
+
 def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int) -> Scenario:
     """One draw; raises ValueError if it cannot be."""
     obj = draw_object(rng)
@@ -62,19 +80,9 @@ def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int
                   period_s=round(rng.uniform(0.8, 2.5), 3), depth_m=round(depth, 3),
                   current_mps=round(rng.uniform(0.0, 0.05), 3),
                   current_deg=round(rng.uniform(-180, 180), 1))
-    arm = default_arm()
-    distance, bearing = rng.uniform(0.4, 0.85), rng.uniform(-math.pi, math.pi)
+    distance, bearing = rng.uniform(0.4, 0.85), rng.uniform(-180.0, 180.0)
     rise = rng.uniform(-0.4, 0.2)  # the shoulder's height above the object's rest
-    across = math.sqrt(max(distance**2 - rise**2, 1e-6))
-    shoulder = rest + np.array([across * math.cos(bearing), across * math.sin(bearing), rise])
-    yaw_offset = rng.uniform(-180.0, 180.0)
-    yaw = math.atan2(-shoulder[1], -shoulder[0]) + math.radians(yaw_offset)
-    c, s = math.cos(yaw), math.sin(yaw)
-    base = shoulder - np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ arm.shoulder
-    # The yaw that faces the object from the base differs a little from the shoulder's.
-    facing = math.atan2(-base[1], -base[0])
-    mount = MountSpec(position=tuple(round(float(v), 4) for v in base),
-                      yaw_offset_deg=round(math.degrees(yaw - facing), 2))
+    mount = mount_at(rest, distance, bearing, rise, rng.uniform(-180.0, 180.0))
     cam_d, cam_b = rng.uniform(0.5, 1.6), rng.uniform(-math.pi, math.pi)
     cam_el = math.radians(rng.uniform(0.0, 40.0))
     eye = rest + cam_d * np.array([math.cos(cam_el) * math.cos(cam_b),
