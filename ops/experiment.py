@@ -75,11 +75,10 @@ def trial_results(outcomes: list[dict], trials: int, attempts: int
     return success, failures, sum(not e for e in ended)
 
 
-def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, seed: int,
-            out: Path) -> RunResult:
-    recording = cached_recording(wave=wave, object=obj, seed=seed,
-                                 seconds=WARMUP_S + trials * PER_TRIAL_S)
-    run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
+def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
+                  attempts: int) -> tuple[dict, float, int]:
+    """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``:
+    its summary.json, wall seconds and exit code."""
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
            "WAVEGRASP_STOP_AFTER_TRIALS": "true", "WAVEGRASP_TRIAL_TIMEOUT_S": str(TRIAL_TIMEOUT_S),
            # The clouds are in the cached recording already: 36 copies would be 16 GB.
@@ -96,14 +95,29 @@ def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, see
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     (run_dir / "up.log").write_text(proc.stdout)
     summary = json.loads((run_dir / "summary.json").read_text())
+    return summary, round(time.monotonic() - started, 1), proc.returncode
+
+
+def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, seed: int,
+            out: Path) -> RunResult:
+    recording = cached_recording(wave=wave, object=obj, seed=seed,
+                                 seconds=WARMUP_S + trials * PER_TRIAL_S)
+    run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
+    summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
-    return RunResult(predictor, wave, obj, trials, success, failures, unfinished,
-                     round(time.monotonic() - started, 1), proc.returncode)
+    return RunResult(predictor, wave, obj, trials, success, failures, unfinished, seconds, code)
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if any(a == "--suite" or a.startswith("--suite=") for a in args):
+        from wavegrasp.ops.suite import main as suite_main
+
+        return suite_main(args)
     p = argparse.ArgumentParser(prog="wavegrasp eval", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="wavegrasp eval --suite random --help: the random "
+                                "scenario suite")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--trials", type=int, default=20)
     p.add_argument("--attempts", type=int, default=3)
@@ -114,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     # One more run than cores: a lockstep pipeline leaves its core idle while a frame travels
     # its chain of processes.
     p.add_argument("--jobs", type=int, default=(os.cpu_count() or 1) + 1)
-    a = p.parse_args(argv)
+    a = p.parse_args(args)
     predictors = a.predictors.split(",")
     waves = [int(w) for w in a.waves.split(",")]
     objects = a.objects.split(",")

@@ -132,3 +132,16 @@ def reach_verdict(s: Scenario) -> str | None:
                 f"{arm.reach_m:.2f} m")
     return None
 
+
+
+def grasp_verdict(s: Scenario) -> str | None:
+    """Why the arm cannot grasp the object at all, judged from the arm model alone: beyond
+    its reach (:func:`reach_verdict`), or wider across than its jaw opens; or None."""
+    reach = reach_verdict(s)
+    if reach:
+        return reach
+    arm = default_arm()
+    if s.object.diameter_m >= arm.jaw_max_opening_m:
+        return (f"the object is {s.object.diameter_m * 100:.1f} cm across, the jaw opens "
+                f"{arm.jaw_max_opening_m * 100:.1f} cm")
+    return None

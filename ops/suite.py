@@ -1,0 +1,141 @@
+"""``wavegrasp eval --suite random``: the pipeline on scenarios drawn from a user's ranges.
+
+Draws ``--scenarios`` scenarios with ``--seed`` (arm mount, object, sea, camera:
+:mod:`wavegrasp.wavetank.suite`), judges from the arm model alone which are out of the arm's
+reach or its jaw's width (listed, not run), and runs the rest as the paper's experiment runs
+its configurations: one lockstep ``wavegrasp up`` of ``--trials`` trials per scenario and
+predictor, ``--jobs`` side by side, deterministic in the seed. Writes ``report.json``,
+``report.md`` and PNG plots to ``--out``: success (first attempt, after reattempts), the
+planner's plan rate, failures, overall and by factor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from wavegrasp.ops.experiment import PER_TRIAL_S, WARMUP_S, run_recording, trial_results
+from wavegrasp.ops.sample import cached_recording
+from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.wavetank.scenario import Scenario
+from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
+
+
+@dataclass
+class ScenarioResult:
+    """One predictor on one drawn scenario; as :class:`~wavegrasp.ops.experiment.RunResult`,
+    plus the scenario's factors and the planner's counts: warm predictions it planned on
+    (the arm at rest) and plans it made."""
+
+    predictor: str
+    scenario: str
+    factors: dict[str, float | str]
+    trials: int
+    success_attempt: list[int] = field(default_factory=list)
+    failures: dict[str, int] = field(default_factory=dict)
+    unfinished: int = 0
+    planned_on: int = 0
+    plans: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+    exit_code: int = 0
+
+    def rate(self, within: int) -> float:
+        return sum(0 < a <= within for a in self.success_attempt) / max(self.trials, 1)
+
+    @property
+    def plan_rate(self) -> float:
+        return self.plans / max(self.planned_on, 1)
+
+
+def factors(s: Scenario) -> dict[str, float | str]:
+    """What the report buckets by: the arm's bearing from the object (degrees from the
+    waves' direction, folded to 0-180: the swing is symmetric), the mount's turn from facing
+    the object, the shoulder's distance and rise, the object's family and size, the sea's
+    period and height, the camera's distance and its cloud's kind."""
+    shoulder, rest = s.shoulder(), s.rest
+    bearing = math.degrees(math.atan2(shoulder[1] - rest[1], shoulder[0] - rest[0]))
+    eye = np.asarray(s.camera.eye)
+    return {"mount bearing (deg)": round(abs(bearing), 1),
+            "mount yaw (deg)": round(abs(s.mount.yaw_offset_deg), 1),
+            "distance (m)": round(float(np.linalg.norm(shoulder - rest)), 3),
+            "height (m)": round(float(shoulder[2] - rest[2]), 3),
+            "object": s.object.family,
+            "size (m)": max(s.object.diameter_m, s.object.length_m or 0.0),
+            "period (s)": s.sea.period_s, "wave height (m)": s.sea.height_m,
+            "camera distance (m)": round(float(np.linalg.norm(eye - rest)), 3),
+            "cloud": getattr(s.camera, "cloud", "dense")}
+
+
+def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
+                 out: Path) -> ScenarioResult:
+    recording = cached_recording(scenario)
+    run_dir = out / "runs" / f"{predictor}-{scenario.name}"
+    summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
+    success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
+    counters = summary.get("services", {}).get("planner", {}).get("counters", {})
+    plans = int(counters.get("plans", 0))
+    rejected = {k.removeprefix("rejected: "): int(v) for k, v in counters.items()
+                if k.startswith("rejected: ")}
+    return ScenarioResult(predictor, scenario.name, factors(scenario), trials, success,
+                          failures, unfinished, plans + int(counters.get("no plan", 0)), plans,
+                          rejected, seconds, code)
+
+
+def _recording(scenario: Scenario) -> Path:
+    return cached_recording(scenario)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="wavegrasp eval --suite random", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--suite", choices=["random"], required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--scenarios", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trials", type=int, default=10)
+    p.add_argument("--attempts", type=int, default=3)
+    p.add_argument("--predictors", default=DEFAULT_MODEL)
+    p.add_argument("--jobs", type=int, default=(os.cpu_count() or 1) + 1)
+    a = p.parse_args(argv)
+    predictors = a.predictors.split(",")
+    if bad := [x for x in predictors if x not in MODELS]:
+        p.error(f"unknown predictors {', '.join(bad)}: known {', '.join(MODELS)}")
+    if a.scenarios < 1 or a.trials < 1:
+        p.error("--scenarios and --trials must be at least 1")
+    a.out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    drawn, redrawn = draw_scenarios(a.scenarios, a.seed,
+                                    seconds=WARMUP_S + a.trials * PER_TRIAL_S)
+    out_of_reach = {s.name: why for s in drawn if (why := grasp_verdict(s))}
+    runnable = [s for s in drawn if s.name not in out_of_reach]
+    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
+        list(tqdm(pool.map(_recording, runnable), total=len(runnable), desc="recordings",
+                  unit="rec"))
+    jobs = [(pred, s) for pred in predictors for s in runnable]
+    results: list[ScenarioResult] = []
+    with ThreadPoolExecutor(a.jobs) as pool:
+        futures = [pool.submit(run_scenario, pred, s, a.trials, a.attempts, a.out)
+                   for pred, s in jobs]
+        for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
+            results.append(f.result())
+    order = {(pred, s.name): i for i, (pred, s) in enumerate(jobs)}
+    results.sort(key=lambda r: order[(r.predictor, r.scenario)])
+    from wavegrasp.ops.suite_report import write_report
+
+    settings = vars(a) | {"out": str(a.out), "elapsed_s": round(time.monotonic() - started, 1)}
+    write_report(a.out, results, settings, {s.name: s for s in drawn}, out_of_reach, redrawn)
+    print((a.out / "report.md").read_text())
+    return 1 if any(r.exit_code for r in results) else 0
+
+
+def as_json(results: list[ScenarioResult]) -> list[dict]:
+    return [asdict(r) for r in results]
