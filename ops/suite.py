@@ -72,7 +72,7 @@ def factors(s: Scenario) -> dict[str, float | str]:
             "size (m)": max(s.object.diameter_m, s.object.length_m or 0.0),
             "period (s)": s.sea.period_s, "wave height (m)": s.sea.height_m,
             "camera distance (m)": round(float(np.linalg.norm(eye - rest)), 3),
-            "cloud": getattr(s.camera, "cloud", "dense")}
+            "cloud": s.camera.cloud}
 
 
 def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,

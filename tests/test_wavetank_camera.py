@@ -147,3 +147,37 @@ def test_same_seed_gives_the_same_frame():
     np.testing.assert_array_equal(la, lb)
     assert a.shape != c.shape or not np.array_equal(a, c)
     assert 20_000 <= len(a) <= 60_000
+
+
+def test_organized_frame_keeps_every_pixel_nearest_first_and_decodes_as_published():
+    cam, meshes, eye, centre, r = sphere_scene(snow_per_frame=300)
+    dense = cam.capture(meshes, np.random.default_rng(3))
+    image = cam.organize(dense)
+    assert image.shape == (cam.height * cam.width, 3) and image.dtype == np.float32
+    valid = np.isfinite(image).all(axis=1)
+    # Dropouts and holes leave NaN pixels; each pixel holds at most one point, the nearest.
+    assert (~valid).sum() > 0 and valid.sum() <= len(dense)
+    assert len(dense) - valid.sum() < 0.1 * len(dense)  # only snow shares pixels
+    row = image[valid]
+    uv = row[:, :2] / row[:, 2:] * cam.focal_px + [cam.width / 2, cam.height / 2]
+    u, v = (np.clip(uv.astype(int), 0, [cam.width - 1, cam.height - 1])).T  # snow at an edge
+    np.testing.assert_array_equal(v * cam.width + u, np.flatnonzero(valid))
+    # Where snow shares a pixel with the surface behind it, the snow (nearer) is kept.
+    snow = dense[len(dense) - 300:]
+    uv = snow[:, :2] / snow[:, 2:] * cam.focal_px + [cam.width / 2, cam.height / 2]
+    u, v = (np.clip(uv.astype(int), 0, [cam.width - 1, cam.height - 1])).T
+    at = v * cam.width + u
+    assert np.all(image[at, 2] <= snow[:, 2] + 1e-6)
+
+    from wavegrasp.recording_io.ros_msgs import decode_points, encode_organized_points
+    from wavegrasp.recording_io.typestore import ros2_typestore
+
+    cdr = encode_organized_points(image, cam.height, cam.width, 1_700_000_000_000_000_000,
+                                  "trisect_optical")
+    msg = ros2_typestore().deserialize_cdr(cdr, "sensor_msgs/msg/PointCloud2")
+    assert (msg.height, msg.width, msg.point_step, msg.is_dense) == (
+        cam.height, cam.width, 32, False)
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "rgb"]
+    cloud = decode_points(cdr)
+    np.testing.assert_array_equal(cloud.points, row)
+    assert cloud.dropped_nonfinite == (~valid).sum()

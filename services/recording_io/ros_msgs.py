@@ -107,6 +107,33 @@ def encode_points(points: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
     return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
 
 
+def encode_organized_points(image: np.ndarray, height: int, width: int, stamp_ns: int,
+                            frame_id: str, rgb: int = 0x808080) -> bytes:
+    """An organized ``sensor_msgs/msg/PointCloud2`` as stereo drivers publish it, as CDR bytes.
+
+    image : array, shape (height * width, 3), metres, frame ``frame_id``, row-major, NaN where
+        stereo found nothing. The layout is PCL's PointXYZRGB: x, y, z float32 at 0, 4, 8,
+        rgb (packed in a float32) at 16, point_step 32 with padding; ``is_dense`` false.
+    rgb : int, 0xRRGGBB given to every valid pixel.
+    """
+    img = np.asarray(image, dtype="<f4")
+    if img.shape != (height * width, 3):
+        raise ValueError(f"organized image must have shape ({height * width}, 3) for "
+                         f"{height} x {width} pixels, got {img.shape}")
+    t = ros2_typestore().types
+    fields = [t["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=FLOAT32, count=1)
+              for n, o in (("x", 0), ("y", 4), ("z", 8), ("rgb", 16))]
+    rows = np.zeros((len(img), 8), dtype="<f4")
+    rows[:, :3] = img
+    rows[:, 4] = np.array([rgb], dtype="<u4").view("<f4")[0]
+    rows[~np.isfinite(img).all(axis=1), 4] = np.nan
+    msg = t["sensor_msgs/msg/PointCloud2"](
+        header=_header(check_stamp(stamp_ns), frame_id), height=height, width=width,
+        fields=fields, is_bigendian=False, point_step=32, row_step=32 * width,
+        data=rows.view(np.uint8).reshape(-1), is_dense=False)
+    return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+
+
 def transform_matrix(translation, rotation) -> np.ndarray:
     """4x4 pose from a geometry_msgs translation/position and quaternion."""
     T = np.eye(4)

@@ -152,6 +152,15 @@ class RecordingWriter:
         self.write_cdr("/trisect/points", "sensor_msgs/msg/PointCloud2", stamp_ns,
                        encode_points(points, stamp_ns, frame_id))
 
+    def write_organized_points(self, stamp_ns: int, image: np.ndarray, height: int, width: int,
+                               frame_id: str = "trisect_optical") -> None:
+        """Write `/trisect/points` as an organized PointCloud2 (height x width, NaN where
+        empty, PCL's XYZRGB layout). image : array, shape (height * width, 3), metres."""
+        from .ros_msgs import encode_organized_points
+
+        self.write_cdr("/trisect/points", "sensor_msgs/msg/PointCloud2", stamp_ns,
+                       encode_organized_points(image, height, width, stamp_ns, frame_id))
+
     def write_tf_static(
         self,
         stamp_ns: int,

@@ -173,6 +173,7 @@ class TrisectCamera:
         rng : all randomness (noise, dropouts, snow) comes from it: same state, same frame.
         return_labels : if true, also return labels, shape (k,), int64: the index in `meshes`
             of the mesh each point lies on, -1 for marine snow.
+        :meth:`organize` turns the frame into the image a stereo driver publishes.
         """
         scene = o3d.t.geometry.RaycastingScene()
         ids = [scene.add_triangles(m) for m in meshes]
@@ -195,6 +196,24 @@ class TrisectCamera:
         if not return_labels:
             return points
         return points, np.concatenate([labels, np.full(len(snow), -1)]).astype(np.int64)
+
+    def organize(self, points: np.ndarray) -> np.ndarray:
+        """Return the image, shape (height * width, 3), float32, NaN where empty, that holds
+        each of `points` (shape (k, 3), trisect_optical, in front of the camera) at the pixel it
+        projects to; where several land on one pixel the nearest wins (as stereo matching
+        keeps the front surface)."""
+        pts = np.asarray(points, dtype=np.float32)
+        image = np.full((self.height * self.width, 3), np.nan, dtype=np.float32)
+        if not len(pts):
+            return image
+        uv = pts[:, :2] / pts[:, 2:3] * self.focal_px + [self.width / 2, self.height / 2]
+        u = np.clip(uv[:, 0].astype(int), 0, self.width - 1)
+        v = np.clip(uv[:, 1].astype(int), 0, self.height - 1)
+        order = np.argsort(pts[:, 2], kind="stable")  # nearest first
+        pixel = (v * self.width + u)[order]
+        pixel, first = np.unique(pixel, return_index=True)  # each pixel's nearest point
+        image[pixel] = pts[order[first]]
+        return image
 
     def _blob_mask(self, rng: np.random.Generator) -> np.ndarray:
         """Return a mask, shape (height * width,), bool: pixels inside this frame's holes."""

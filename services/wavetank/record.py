@@ -218,7 +218,11 @@ def generate(what: RecordConfig | Scenario, out: Path,
             w.write_groundtruth(stamp, traj.positions[i], traj.quats[i])
             if i % frame_every == 0:
                 cloud = camera.capture(scene(traj, i, shape, seabed), cam_rng)
-                w.write_points(stamp, cloud)
+                if s.camera.cloud == "organized":
+                    w.write_organized_points(stamp, camera.organize(cloud), camera.height,
+                                             camera.width)
+                else:
+                    w.write_points(stamp, cloud)
                 points.append(len(cloud))
         facts = {"slack_fraction": traj.slack_fraction, "frames": len(points),
                  "points_per_frame": float(np.mean(points))}

@@ -122,10 +122,13 @@ class CameraSpec(Strict):
     dropout: float = Field(0.03, ge=0, le=1)
     dropout_blobs: int = Field(4, ge=0)
     snow_per_frame: int = Field(150, ge=0)
+    # dense: height 1, valid points only; organized: height x width, NaN where stereo found
+    # nothing, PCL's XYZRGB layout with padding, is_dense false (as stereo drivers publish).
+    cloud: Literal["dense", "organized"] = "dense"
 
     def sensor(self) -> dict[str, float | int]:
         """The camera model's settings (TrisectCamera's fields but its pose)."""
-        return self.model_dump(exclude={"eye", "target", "rate_hz"})
+        return self.model_dump(exclude={"eye", "target", "rate_hz", "cloud"})
 
 
 class Scenario(Strict):

@@ -71,6 +71,11 @@ def mount_at(rest: np.ndarray, distance_m: float, bearing_deg: float, rise_m: fl
                      yaw_offset_deg=round(math.degrees(yaw - facing), 2))
 
 
+# Its own generator (from the scenario's seed) so that adding it left the other draws as
+# they were.
+CLOUDS = ("dense", "organized")
+
+
 def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int) -> Scenario:
     """One draw; raises ValueError if it cannot be."""
     obj = draw_object(rng)
@@ -91,7 +96,8 @@ def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int
     camera = CameraSpec(eye=tuple(round(float(v), 4) for v in eye),
                         target=tuple(float(v) for v in rest), width=width, height=height,
                         rate_hz=RATES_HZ[rng.integers(len(RATES_HZ))],
-                        max_range_m=max(3.0, cam_d + 1.5))
+                        max_range_m=max(3.0, cam_d + 1.5),
+                        cloud=CLOUDS[np.random.default_rng([seed, 1]).integers(len(CLOUDS))])
     return Scenario(name=name, sea=sea, object=obj, mount=mount, camera=camera,
                     seconds=seconds, seed=seed)
 
@@ -131,7 +137,6 @@ def reach_verdict(s: Scenario) -> str | None:
         return (f"the swing reaches {distance:.2f} m from the shoulder, beyond the arm's "
                 f"{arm.reach_m:.2f} m")
     return None
-
 
 
 def grasp_verdict(s: Scenario) -> str | None:
