@@ -122,7 +122,7 @@ def test_unreachable_object_is_rejected_with_the_reason(arm: ArmModel,
                                                         T_world_base: np.ndarray) -> None:
     far = prediction(10.0, centre=(3.0, 3.0, 0.5))
     result = plan_grasp(far, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
-    assert isinstance(result, Counter) and result["unreachable"] > 0
+    assert isinstance(result, Counter) and result["out of reach"] > 0
 
 
 def test_too_short_a_horizon_cannot_be_timed(arm: ArmModel, T_world_base: np.ndarray) -> None:

@@ -99,7 +99,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     rejected: Counter = Counter()
     base_world = T_world_base[:3, 3]
     if np.linalg.norm(path.positions - base_world, axis=1).min() > arm.reach_m + 0.2:
-        rejected["unreachable"] += 1
+        rejected["out of reach"] += 1
         return rejected
     # No grasp sooner than the arm could get there: from its tool to P_init at a modest
     # Cartesian speed, then the approach itself.
@@ -126,7 +126,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
             if R[:, 2] @ outwards < cfg.min_outwards:
-                rejected["unreachable"] += 1
+                rejected["points back at the arm"] += 1
                 continue
             if hand_hits(arm, T_grasp, body):
                 rejected["collision"] += 1
@@ -199,7 +199,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
         q = arm.inverse(T_base_world @ T, seed, max_iter=cfg.ik_max_iter,
                         restarts=cfg.ik_restarts)
         if q is None:
-            return "unreachable", np.inf
+            return "approach unreachable", np.inf
         qs.append(q)
         seed = q
     qs = np.array(qs[::-1])
