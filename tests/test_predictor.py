@@ -112,3 +112,21 @@ def test_bad_positions_are_rejected_by_name() -> None:
         make_predictor("linear").update(0.0, np.array([0.0, np.nan, 0.0]))
     with pytest.raises(ValueError, match="unknown predictor model"):
         make_predictor("kalman")
+
+
+def test_a_slow_camera_still_warms_the_predictor_and_gets_a_sigma_at_every_lead() -> None:
+    # At 5 Hz an observation falls only in every other 0.1 s lead bin; the period's bin
+    # (1.7 s) is one it never falls in.
+    period = 1.7
+    p, forecast = make_predictor("blend"), None
+    for i in range(150):
+        t = i / 5.0
+        phase = 2 * np.pi * t / period
+        forecast = p.update(t, np.array([0.05 * np.sin(phase), 0.0, 0.5 + 0.01 * np.cos(phase)]),
+                            0.001) or forecast
+    assert forecast is not None and forecast.warm
+    sigma = forecast.sigma[forecast.leads <= 3.5]
+    assert np.isfinite(sigma).all() and (sigma > 0).all()
+    # A bin never measured says what its measured neighbours say, no more.
+    odd = np.arange(3, len(sigma) - 1, 2)
+    assert np.all(sigma[odd] <= np.maximum(sigma[odd - 1], sigma[odd + 1]) + 1e-9)

@@ -102,10 +102,31 @@ class ErrorTracker:
     def _bins(self, leads: np.ndarray) -> np.ndarray:
         return np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
 
+    def _between(self, values: np.ndarray) -> np.ndarray:
+        """``values`` (shape (n_leads,) or (n_leads, c)) with the bins no observation has
+        fallen in yet filled linearly from the measured bins either side, those before the
+        first like it (left as they are after the last: nothing was measured that far). A
+        camera slower than 1 / dt hits only some lead bins: at 5 Hz and dt 0.1 s, only the
+        even ones."""
+        measured = np.flatnonzero(self.count)
+        if not len(measured):
+            return values
+        out = values.astype(float, copy=True)
+        inner = np.arange(1, measured[-1] + 1)
+        cols = out[:, None] if out.ndim == 1 else out
+        for c in range(cols.shape[1]):
+            cols[inner, c] = np.interp(inner, measured, cols[measured, c])
+        return out
+
     def sigma(self, leads: np.ndarray) -> np.ndarray:
         """RMS error at ``leads`` (seconds), NaN where nothing was measured yet."""
-        return np.sqrt(self.mse[self._bins(leads)].max(axis=1))
+        return np.sqrt(self._between(self.mse)[self._bins(leads)].max(axis=1))
 
     def recent(self, leads: np.ndarray) -> np.ndarray:
         """The fast average alone: how good the model is now (for weighting models)."""
-        return np.sqrt(self.mse[self._bins(leads), 0])
+        return np.sqrt(self._between(self.mse)[self._bins(leads), 0])
+
+    def measured(self, lead: float) -> float:
+        """How many errors were measured at ``lead`` (seconds); a bin no observation can fall
+        in (see :meth:`_between`) counts as its measured neighbours do."""
+        return float(self._between(self.count)[self._bins(np.array([lead]))[0]])

@@ -178,7 +178,8 @@ class BlendPredictor(Predictor):
         params = self.harmonic.parameters()
         k = min(len(self.leads) - 1, int(round(period / self.dt))) if omega else 0
         params["lag_weight_at_period"] = float(w_lag[k])
-        warm = bool(self.lag.warm and self.harmonic.warm and self.tracker.count[k] >= 20)
+        warm = bool(self.lag.warm and self.harmonic.warm
+                    and self.tracker.measured(self.leads[k]) >= 20)
         return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, warm)
 
 
