@@ -35,14 +35,12 @@ PER_TRIAL_S = 6.0
 TRIAL_TIMEOUT_S = 5.0
 
 
-@dataclass
-class RunResult:
-    """One predictor on one configuration: per trial, whether it succeeded and on which
-    attempt (0: never), and every attempt's failure kind."""
+@dataclass(kw_only=True)
+class Trials:
+    """What one run's trials came to: per trial, whether it succeeded and on which attempt
+    (0: never), every attempt's failure kind, the trials the recording ended first, the run's
+    seconds and exit code."""
 
-    predictor: str
-    wave: int
-    object: str
     trials: int
     success_attempt: list[int] = field(default_factory=list)
     failures: dict[str, int] = field(default_factory=dict)
@@ -53,6 +51,15 @@ class RunResult:
     def rate(self, within: int) -> float:
         """Share of the trials that succeeded within ``within`` attempts."""
         return sum(0 < a <= within for a in self.success_attempt) / max(self.trials, 1)
+
+
+@dataclass
+class RunResult(Trials):
+    """One predictor on one of the paper's configurations."""
+
+    predictor: str
+    wave: int
+    object: str
 
 
 def trial_results(outcomes: list[dict], trials: int, attempts: int
@@ -105,7 +112,8 @@ def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, see
     run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
     summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
-    return RunResult(predictor, wave, obj, trials, success, failures, unfinished, seconds, code)
+    return RunResult(predictor, wave, obj, trials=trials, success_attempt=success,
+                     failures=failures, unfinished=unfinished, seconds=seconds, exit_code=code)
 
 
 def main(argv: list[str] | None = None) -> int:

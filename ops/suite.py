@@ -22,7 +22,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from wavegrasp.ops.experiment import PER_TRIAL_S, WARMUP_S, run_recording, trial_results
+from wavegrasp.ops.experiment import (
+    PER_TRIAL_S,
+    WARMUP_S,
+    Trials,
+    run_recording,
+    trial_results,
+)
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.scenario import Scenario
@@ -30,7 +36,7 @@ from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
 
 
 @dataclass
-class ScenarioResult:
+class ScenarioResult(Trials):
     """One predictor on one drawn scenario; as :class:`~wavegrasp.ops.experiment.RunResult`,
     plus the scenario's factors and the planner's counts: warm predictions it planned on
     (the arm at rest) and plans it made."""
@@ -38,18 +44,9 @@ class ScenarioResult:
     predictor: str
     scenario: str
     factors: dict[str, float | str]
-    trials: int
-    success_attempt: list[int] = field(default_factory=list)
-    failures: dict[str, int] = field(default_factory=dict)
-    unfinished: int = 0
     planned_on: int = 0
     plans: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
-    seconds: float = 0.0
-    exit_code: int = 0
-
-    def rate(self, within: int) -> float:
-        return sum(0 < a <= within for a in self.success_attempt) / max(self.trials, 1)
 
     @property
     def plan_rate(self) -> float:
@@ -85,9 +82,10 @@ def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
     plans = int(counters.get("plans", 0))
     rejected = {k.removeprefix("rejected: "): int(v) for k, v in counters.items()
                 if k.startswith("rejected: ")}
-    return ScenarioResult(predictor, scenario.name, factors(scenario), trials, success,
-                          failures, unfinished, plans + int(counters.get("no plan", 0)), plans,
-                          rejected, seconds, code)
+    return ScenarioResult(predictor, scenario.name, factors(scenario),
+                          plans + int(counters.get("no plan", 0)), plans, rejected,
+                          trials=trials, success_attempt=success, failures=failures,
+                          unfinished=unfinished, seconds=seconds, exit_code=code)
 
 
 def _recording(scenario: Scenario) -> Path:

@@ -30,7 +30,8 @@ def test_trials_are_counted_from_the_outcomes() -> None:
     assert success == [1, 2, 0, 0, 0]
     assert failures == {"timing": 2, "collision": 1, "prediction": 2, "no plan approved": 1}
     assert unfinished == 1
-    run = RunResult("blend", 2, "can_half", 5, success, failures, unfinished)
+    run = RunResult("blend", 2, "can_half", trials=5, success_attempt=success,
+                    failures=failures, unfinished=unfinished)
     assert run.rate(1) == 0.2 and run.rate(3) == 0.4
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from wavegrasp.wavetank.scenario import (
 )
 from wavegrasp.wavetank.suite import draw_scenarios, reach_verdict
 
-from conftest import source_frames
+from conftest import source_frames, wavegrasp_cmd
 
 SPHERE = {"sea": {"height_m": 0.2, "period_s": 2.0},
           "object": {"family": "sphere", "diameter_m": 0.15, "mass_kg": 0.4}}
@@ -124,3 +125,25 @@ def test_reach_is_judged_from_the_arm_model_over_the_whole_swing() -> None:
     far = paper_scenario(2, "buoy", mount=MountSpec(position=(0.55, -0.55, 0.45)),
                          sea=SeaSpec(height_m=0.35, period_s=2.5))
     assert "beyond the arm's" in (reach_verdict(far) or "")
+
+
+def test_eval_suite_random_runs_drawn_scenarios_and_reports_them_by_factor(
+        tmp_path: Path) -> None:
+    out = tmp_path / "suite"
+    result = subprocess.run(wavegrasp_cmd(
+        "eval", "--suite", "random", "--scenarios", "2", "--seed", "3", "--trials", "1",
+        "--jobs", "2", "--out", str(out)), capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    drawn, _ = draw_scenarios(2, 3, seconds=21.0)
+    ran = [r["scenario"] for r in report["runs"]]
+    # Every drawn scenario is either run or listed with the reason it was not.
+    assert sorted(ran + list(report["out_of_reach"])) == sorted(s.name for s in drawn)
+    for run in report["runs"]:
+        assert run["exit_code"] == 0 and run["trials"] == 1
+        assert run["planned_on"] > 0, f"{run['scenario']}: the predictor never warmed"
+        assert set(run["factors"]) >= {"mount bearing (deg)", "object", "period (s)", "cloud"}
+    if ran:
+        assert set(report["by_factor"]["blend"]) == set(report["runs"][0]["factors"])
+        assert (out / "by_factor.png").stat().st_size > 0
+    assert "seed 3" in (out / "report.md").read_text()
