@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.resources
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -223,9 +224,14 @@ class ArmModel:
     # --- inverse kinematics ---------------------------------------------------------------
 
     def _seeds(self, q_seed: np.ndarray, restarts: int | None = None,
-               target: np.ndarray | None = None) -> list[np.ndarray]:
-        facing = [] if target is None else [self.facing(target)]
-        return [q_seed, *facing, self.q_home, *self._restarts[:restarts]]
+               target: np.ndarray | None = None) -> Iterator[np.ndarray]:
+        # Lazily: the facing pose costs a forward kinematics pass, and the seed alone
+        # usually converges.
+        yield q_seed
+        if target is not None:
+            yield self.facing(target)
+        yield self.q_home
+        yield from self._restarts[:restarts]
 
     def facing(self, p: np.ndarray) -> np.ndarray:
         """The home pose with the first joint turned so the arm faces ``p`` (array, shape
