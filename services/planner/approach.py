@@ -190,6 +190,18 @@ def offset_direction(d: np.ndarray, z: np.ndarray, towards: np.ndarray) -> np.nd
     return _unit(back) if np.linalg.norm(back) > 0.5 else perpendicular(d, towards)
 
 
+def offsets(n: np.ndarray, move: np.ndarray, count: int) -> list[np.ndarray]:
+    """``count`` directions for P_init's offset: ``n`` (unit) first, then ``n`` turned about
+    the final ``move`` (unit) by ±60°, ±120° and 180°. Each keeps its angle to the final move,
+    so the hand still comes in along it; another side of the object is what an arm too near
+    or too far to come from the paper's side still reaches."""
+    out = []
+    for a in np.radians([0.0, 60.0, -60.0, 120.0, -120.0, 180.0][:count]):
+        out.append(np.cos(a) * n + np.sin(a) * cross(move, n)
+                   + (1.0 - np.cos(a)) * (move @ n) * move)
+    return out
+
+
 def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15,
               count: int = 4, beta: float = 0.03, final_m: float = 0.06,
               move: np.ndarray | None = None) -> np.ndarray:

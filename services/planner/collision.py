@@ -50,6 +50,17 @@ def segments_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> n
     return np.linalg.norm(rel - s[..., None] * d[:, :, None, :], axis=-1).min(axis=2)
 
 
+def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centre: np.ndarray,
+              body: Body) -> float:
+    """The smallest gap, metres, between the arm at ``q`` (shape (n,), radians) and the
+    object at ``centre`` (shape (3,), metres, world); negative where they overlap."""
+    p0, p1, link_radius = arm.capsules_batch(np.asarray(q)[None])
+    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
+    gap = segments_points_distance(p0 @ R.T + t, p1 @ R.T + t,
+                                   (np.asarray(centre) + _spine(body))[None])
+    return float(np.min(gap[0] - link_radius) - body[0])
+
+
 def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
              path: PredictedPath, body: Body, clearance: float, final_from: float) -> bool:
     """Does any link come within ``clearance`` of the object at any of ``times`` (shape (k,))

@@ -25,10 +25,11 @@ from wavegrasp.planner.approach import (
     grasp_times,
     motion_direction,
     offset_direction,
+    offsets,
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, collides, extent, hand_hits
+from wavegrasp.planner.collision import Body, clearance, collides, extent, hand_hits
 from wavegrasp.planner.timing import (
     Limits,
     sample_path,
@@ -63,6 +64,8 @@ class PlannerConfig(BaseModel):
     min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
                                 "to point back at itself: the least cosine between the tool's z "
                                 "and the direction from the shoulder to the object")
+    offset_tries: int = Field(4, description="directions n of P_init tried per grasp pose: "
+                              "the paper's first, then turned about the final move")
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -154,13 +157,48 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     return rejected
 
 
-def standby_pose(arm: ArmModel, T_world_base: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Where the arm waits between attempts: its home pose turned to face the object's
-    ``centre`` (shape (3,), metres, world; NaN: not seen yet, the home pose). Radians, shape
-    (n,). An arm mounted at any yaw then starts every approach from the object's side."""
+def standby_pose(arm: ArmModel, T_world_base: np.ndarray, centre: np.ndarray,
+                 swept_m: float, margin_m: float = 0.08) -> np.ndarray:
+    """Where the arm waits between attempts, radians, shape (n,): its home pose turned to
+    face the object's ``centre`` (shape (3,), metres, world; NaN: not seen yet, the home
+    pose), so an arm mounted at any yaw starts every approach from the object's side. Where
+    that pose reaches into the sphere of radius ``swept_m`` about the centre (metres: the
+    object's extent plus how far it sways), as it does for an object near the shoulder, a
+    ready pose ``margin_m`` outside the sphere with the tool pointing at the centre; failing
+    that, whichever of the two keeps the arm farthest from the centre."""
     if np.isnan(centre).any():
         return arm.q_home.copy()
-    return arm.facing((np.linalg.inv(T_world_base) @ np.append(centre, 1.0))[:3])
+    c = (np.linalg.inv(T_world_base) @ np.append(centre, 1.0))[:3]
+    facing = arm.facing(c)
+
+    def gap(q: np.ndarray) -> float:
+        return clearance(arm, np.eye(4), q, c, (swept_m, 0.0, None))
+
+    if gap(facing) > 0.01:
+        return facing
+    for u, back in _ready_directions(c - arm.shoulder):
+        ready = arm.inverse_position(c - (swept_m + margin_m + back) * u, u, facing)
+        if ready is not None and gap(ready[0]) > 0.01:
+            return ready[0]
+    return max([facing, arm.q_home.copy()], key=gap)
+
+
+def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Tool directions (unit, frame base_link) to wait in and how much farther back, metres,
+    best first: from the shoulder towards the object (``out``), up to 0.2 m farther back,
+    then level and turned up to 90° either way, then tilted 45° down: an object near the
+    shoulder is reached from its side or from above."""
+    up = np.array([0.0, 0.0, 1.0])
+    level = out - (out @ up) * up
+    level = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array(
+        [1.0, 0.0, 0.0])
+    side = np.cross(up, level)
+    dirs = [(out / np.linalg.norm(out), back) for back in (0.0, 0.1, 0.2)]
+    for tilt in np.radians([0.0, 45.0]):
+        for turn in np.radians([0.0, 45.0, -45.0, 90.0, -90.0]):
+            dirs.append((np.cos(tilt) * (np.cos(turn) * level + np.sin(turn) * side)
+                         - np.sin(tilt) * up, 0.0))
+    return dirs
 
 
 def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
@@ -189,20 +227,15 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
         return "cannot be timed", np.inf
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
-    alpha = cfg.alpha_m + extent(body, n)
     move = final_move(T_grasp[:3, :3], d)
-    points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, cfg.final_m, move)
-    qs, seed = [], q_f
-    for p in points[::-1]:  # from the grasp back to P_init, each seeding the next
-        T = T_grasp.copy()
-        T[:3, 3] = p
-        q = arm.inverse(T_base_world @ T, seed, max_iter=cfg.ik_max_iter,
-                        restarts=cfg.ik_restarts)
-        if q is None:
-            return "approach unreachable", np.inf
-        qs.append(q)
-        seed = q
-    qs = np.array(qs[::-1])
+    for n in offsets(n, move, cfg.offset_tries):
+        points = waypoints(p_f, n, d, cfg.alpha_m + extent(body, n), cfg.waypoint_count,
+                           cfg.beta_m, cfg.final_m, move)
+        qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg)
+        if qs is not None:
+            break
+    else:
+        return "approach unreachable", np.inf
     # Stage at P_init (ruckig, time-optimal), wait there, then the paper's cubic spline
     # through the waypoints, timed to end at P_f exactly at the grasp time.
     approach = spline_path(qs, limits)
@@ -219,7 +252,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     times = np.concatenate([t_pre, t_hold, t_app])
     q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
     qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
-    final_from = t_g - d_path * (1 - approach.spline.x[-2])
+    final_from = t_g - d_path + approach.spline.x[-2]
     if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
@@ -241,3 +274,21 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     t_close = t_g - (preshape - width) / arm.jaw_closing_mps
     return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence, final_from,
                 preshape, t_close)
+
+
+def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
+                     points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig
+                     ) -> np.ndarray | None:
+    """Joint values (k, n) at the waypoints ``points`` (k, 3), world, the tool held as in
+    the grasp; solved from the grasp back to P_init, each seeding the next, so neighbours
+    stay on one branch. None if one is unreachable."""
+    qs, seed = [], q_f
+    for p in points[::-1]:
+        T = T_base_grasp.copy()
+        T[:3, 3] = (T_base_world @ np.append(p, 1.0))[:3]
+        q = arm.inverse(T, seed, max_iter=cfg.ik_max_iter, restarts=cfg.ik_restarts)
+        if q is None:
+            return None
+        qs.append(q)
+        seed = q
+    return np.array(qs[::-1])
