@@ -208,8 +208,7 @@ def test_an_arm_mounted_sideways_or_turned_away_plans_from_its_standby(
     T_world_base[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
                             [0, 0, 1]]
     T_world_base[:3, 3] = shoulder - T_world_base[:3, :3] @ arm.shoulder
-    q_standby = standby_pose(arm, T_world_base, np.array([0.0, 0.0, 0.525]),
-                             swept_m=0.06 + BODY[1])
+    q_standby = standby_pose(arm, T_world_base, swing(np.arange(0.0, 5.0, 0.1)), BODY)
     plans = [plan_grasp(prediction(now), now, arm, T_world_base, q_standby, BODY,
                         PlannerConfig()) for now in 10.0 + np.arange(8) * 0.15]
     assert sum(isinstance(p, Plan) for p in plans) >= 6, [p for p in plans
@@ -217,14 +216,14 @@ def test_an_arm_mounted_sideways_or_turned_away_plans_from_its_standby(
 
 
 @pytest.mark.parametrize("offset", [(0.08, 0.47, 0.25), (0.45, 0.0, -0.35), (0.0, -0.8, 0.1)])
-def test_the_standby_pose_waits_clear_of_the_objects_sway(
+def test_the_standby_pose_waits_clear_of_where_the_object_sways(
         arm: ArmModel, offset: tuple[float, float, float]) -> None:
     """Near and above the shoulder (where the home pose turned to face the object reaches into
-    it), below it, far off: the arm waits outside the sphere the object sways in, and no
+    it), below it, far off: the arm waits clear of the object wherever it was seen, and no
     farther from it than the home pose."""
-    centre = arm.shoulder + np.array(offset)
-    swept = 0.06 + BODY[1]
-    q = standby_pose(arm, np.eye(4), centre, swept_m=swept)
-    assert clearance(arm, np.eye(4), q, centre, (swept, 0.0, None)) > 0.01
+    seen = swing(np.arange(0.0, 5.0, 0.1), centre=arm.shoulder + np.array(offset))
+    q = standby_pose(arm, np.eye(4), seen, BODY)
+    assert clearance(arm, np.eye(4), q, seen, BODY) > 0.01
     home = arm.forward(arm.q_home)[:3, 3]
+    centre = seen.mean(axis=0)
     assert np.linalg.norm(arm.forward(q)[:3, 3] - centre) <= np.linalg.norm(home - centre)

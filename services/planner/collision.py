@@ -50,14 +50,15 @@ def segments_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> n
     return np.linalg.norm(rel - s[..., None] * d[:, :, None, :], axis=-1).min(axis=2)
 
 
-def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centre: np.ndarray,
+def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centres: np.ndarray,
               body: Body) -> float:
     """The smallest gap, metres, between the arm at ``q`` (shape (n,), radians) and the
-    object at ``centre`` (shape (3,), metres, world); negative where they overlap."""
+    object at any of ``centres`` (shape (k, 3) or (3,), metres, world); negative where they
+    overlap."""
     p0, p1, link_radius = arm.capsules_batch(np.asarray(q)[None])
     R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-    gap = segments_points_distance(p0 @ R.T + t, p1 @ R.T + t,
-                                   (np.asarray(centre) + _spine(body))[None])
+    points = (np.reshape(centres, (-1, 1, 3)) + _spine(body)).reshape(1, -1, 3)
+    gap = segments_points_distance(p0 @ R.T + t, p1 @ R.T + t, points)
     return float(np.min(gap[0] - link_radius) - body[0])
 
 

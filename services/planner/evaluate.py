@@ -43,9 +43,7 @@ def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.n
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
     times, errors, attempts, plans, rejected = [], [], 0, 0, Counter()
     seen = track.centres[(track.stamps_ns - track.stamps_ns[0]) * 1e-9 < warmup_s]
-    centre = np.nanmedian(seen, axis=0)
-    sway = float(np.nanmax(np.linalg.norm(seen - centre, axis=1)))
-    q_standby = standby_pose(arm, T_world_base, centre, sway + max(body[:2]))
+    q_standby = standby_pose(arm, T_world_base, seen[-100:], body)
     for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
         if np.isnan(centre[0]):
             continue

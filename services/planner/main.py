@@ -13,6 +13,7 @@ import argparse
 import logging
 import sys
 import time
+from collections import deque
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -96,10 +97,8 @@ class PlannerService(Service):
         self.arm_moving = False
         self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
         self.busy_until_ns = 0
-        #: The object's mean observed centroid, metres, world (NaN until seen).
-        self.centre = np.full(3, np.nan)
-        #: How far from it the object has been seen lately, metres.
-        self.sway_m = 0.0
+        #: Where it has been lately (a few seconds of centroids, metres, world).
+        self.seen: deque[np.ndarray] = deque(maxlen=100)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
@@ -114,8 +113,7 @@ class PlannerService(Service):
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if msg.centroid is not None:  # where the object sways: the arm waits facing it
             c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
-            self.centre = c if np.isnan(self.centre[0]) else self.centre + 0.02 * (c - self.centre)
-            self.sway_m = max(0.995 * self.sway_m, float(np.linalg.norm(c - self.centre)))
+            self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             axis = None if msg.axis is None else np.array([msg.axis.x, msg.axis.y, msg.axis.z])
             self.body = (msg.radius_m, (msg.length_m or 2 * msg.radius_m) / 2, axis)
@@ -219,8 +217,8 @@ class PlannerService(Service):
             return
         self.counters["plans"] += 1
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
-                          standby_pose(self.arm, T_world_base, self.centre,
-                                       self.sway_m + max(self.body[:2])))
+                          standby_pose(self.arm, T_world_base, np.array(self.seen).reshape(-1, 3),
+                                       self.body))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
 

@@ -66,6 +66,8 @@ class PlannerConfig(BaseModel):
                                 "and the direction from the shoulder to the object")
     offset_tries: int = Field(4, description="directions n of P_init tried per grasp pose: "
                               "the paper's first, then turned about the final move")
+    max_joint_step_rad: float = Field(1.0, description="the most a joint may turn between "
+                                      "neighbouring waypoints of the approach")
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -157,27 +159,33 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     return rejected
 
 
-def standby_pose(arm: ArmModel, T_world_base: np.ndarray, centre: np.ndarray,
-                 swept_m: float, margin_m: float = 0.08) -> np.ndarray:
+def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
+                 margin_m: float = 0.08) -> np.ndarray:
     """Where the arm waits between attempts, radians, shape (n,): its home pose turned to
-    face the object's ``centre`` (shape (3,), metres, world; NaN: not seen yet, the home
-    pose), so an arm mounted at any yaw starts every approach from the object's side. Where
-    that pose reaches into the sphere of radius ``swept_m`` about the centre (metres: the
-    object's extent plus how far it sways), as it does for an object near the shoulder, a
-    ready pose ``margin_m`` outside the sphere with the tool pointing at the centre; failing
-    that, whichever of the two keeps the arm farthest from the centre."""
-    if np.isnan(centre).any():
+    face the object, so an arm mounted at any yaw starts every approach from the object's
+    side. ``seen`` : array, shape (k, 3), metres, world: where the object's centroid has been
+    lately (none yet: the home pose). Where the arm facing it would touch the object at one
+    of those places, as it does for an object near the shoulder, a ready pose ``margin_m``
+    beyond the object's sway with the tool pointing at it; failing that, whichever of the
+    two keeps farthest from the object."""
+    seen = np.asarray(seen, dtype=float).reshape(-1, 3)
+    seen = seen[~np.isnan(seen).any(axis=1)]
+    if not len(seen):
         return arm.q_home.copy()
-    c = (np.linalg.inv(T_world_base) @ np.append(centre, 1.0))[:3]
+    T_base_world = np.linalg.inv(T_world_base)
+    seen = seen @ T_base_world[:3, :3].T + T_base_world[:3, 3]
+    c = seen.mean(axis=0)
+    sway = float(np.linalg.norm(seen - c, axis=1).max()) + max(body[0], body[1])
     facing = arm.facing(c)
+    body = (body[0], body[1], None if body[2] is None else T_base_world[:3, :3] @ body[2])
 
     def gap(q: np.ndarray) -> float:
-        return clearance(arm, np.eye(4), q, c, (swept_m, 0.0, None))
+        return clearance(arm, np.eye(4), q, seen, body)
 
     if gap(facing) > 0.01:
         return facing
     for u, back in _ready_directions(c - arm.shoulder):
-        ready = arm.inverse_position(c - (swept_m + margin_m + back) * u, u, facing)
+        ready = arm.inverse_position(c - (sway + margin_m + back) * u, u, facing)
         if ready is not None and gap(ready[0]) > 0.01:
             return ready[0]
     return max([facing, arm.q_home.copy()], key=gap)
@@ -202,7 +210,7 @@ def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
 
 
 def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
-               n: np.ndarray, d: np.ndarray, arm: ArmModel, T_world_base: np.ndarray,
+               n_paper: np.ndarray, d: np.ndarray, arm: ArmModel, T_world_base: np.ndarray,
                q_now: np.ndarray, body: Body, cfg: PlannerConfig
                ) -> Plan | tuple[str, float]:
     """One grasp pose at one time: the plan, or why not and (if it cannot be timed) how long
@@ -228,7 +236,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
     move = final_move(T_grasp[:3, :3], d)
-    for n in offsets(n, move, cfg.offset_tries):
+    for n in offsets(n_paper, move, cfg.offset_tries):
         points = waypoints(p_f, n, d, cfg.alpha_m + extent(body, n), cfg.waypoint_count,
                            cfg.beta_m, cfg.final_m, move)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg)
@@ -281,13 +289,15 @@ def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.n
                      ) -> np.ndarray | None:
     """Joint values (k, n) at the waypoints ``points`` (k, 3), world, the tool held as in
     the grasp; solved from the grasp back to P_init, each seeding the next, so neighbours
-    stay on one branch. None if one is unreachable."""
+    stay on one branch. None if one is unreachable or only on another branch."""
     qs, seed = [], q_f
     for p in points[::-1]:
         T = T_base_grasp.copy()
         T[:3, 3] = (T_base_world @ np.append(p, 1.0))[:3]
         q = arm.inverse(T, seed, max_iter=cfg.ik_max_iter, restarts=cfg.ik_restarts)
-        if q is None:
+        # Waypoints a few centimetres apart need no joint to swing far: one that does has
+        # jumped to another branch of the arm's solutions, a detour, not the approach.
+        if q is None or np.abs(q - seed).max() > cfg.max_joint_step_rad:
             return None
         qs.append(q)
         seed = q

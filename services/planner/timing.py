@@ -93,7 +93,7 @@ def spline_path(qs: np.ndarray, limits: Limits, margin: float = 0.9,
         knots = np.concatenate([[0.0], np.cumsum(durations)])
         spline = CubicSpline(knots, qs, bc_type="clamped")
         durations = durations * np.array([_need(spline, a, b, limits, margin)
-                                          for a, b in zip(knots[:-1], knots[1:])])
+                                          for a, b in zip(knots[:-1], knots[1:], strict=True)])
     knots = np.concatenate([[0.0], np.cumsum(durations)])
     worst = _need(CubicSpline(knots, qs, bc_type="clamped"), 0.0, knots[-1], limits, margin,
                   samples=200)
