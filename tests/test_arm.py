@@ -172,11 +172,15 @@ def test_reach_and_capsules(arm: ArmModel) -> None:
     assert np.linalg.norm(arm.forward(np.zeros(6))[:3, 3] - shoulder) == pytest.approx(
         arm.reach_m)
     capsules = arm.link_capsules(arm.q_home)
-    assert len(capsules) == 8  # six moving links and two fingers
+    assert len(capsules) == 12  # six moving links; two flat fingers of three side by side
     assert all(p0.shape == (3,) and p1.shape == (3,) and r > 0 for p0, p1, r in capsules)
     closed = arm.link_capsules(arm.q_home, jaw_opening_m=0.0)
-    gap = np.linalg.norm(closed[-1][0] - closed[-2][0])
-    assert gap < np.linalg.norm(capsules[-1][0] - capsules[-2][0])
+    gap = np.linalg.norm(closed[-1][0] - closed[-4][0])
+    assert gap < np.linalg.norm(capsules[-1][0] - capsules[-4][0])
+    # Wide open, the fingers' capsules leave nearly all of the jaw's 14 cm between them.
+    left, right = capsules[-6:-3], capsules[-3:]
+    inner = min(np.linalg.norm(a[0] - b[0]) - a[2] - b[2] for a, b in zip(left, right))
+    assert arm.jaw_max_opening_m - 0.006 <= inner <= arm.jaw_max_opening_m
 
 
 def test_capsules_batch_matches_one_at_a_time(arm: ArmModel) -> None:

@@ -111,7 +111,7 @@ def _origin(el: ET.Element | None) -> np.ndarray:
 
 def _capsules(link: ET.Element) -> list[Capsule]:
     """Capsules around the link's collision shapes: a cylinder's axis, a box's longest edge
-    (radius: half the diagonal of the other two), a sphere's centre; meshes are left out."""
+    (:func:`_box_capsules`), a sphere's centre; meshes are left out."""
     out = []
     for col in link.findall("collision"):
         T = _origin(col.find("origin"))
@@ -125,14 +125,28 @@ def _capsules(link: ET.Element) -> list[Capsule]:
             radius = float(shape.get("radius", DEFAULT_RADIUS))
             out.append(Capsule(centre - half * R[:, 2], centre + half * R[:, 2], radius))
         elif shape.tag == "box":
-            size = _floats(shape.get("size"), 3)
-            k = int(np.argmax(size))
-            others = np.delete(size, k)
-            half = size[k] / 2
-            out.append(Capsule(centre - half * R[:, k], centre + half * R[:, k],
-                               float(np.hypot(*others)) / 2))
+            out += _box_capsules(centre, R, _floats(shape.get("size"), 3))
         elif shape.tag == "sphere":
             out.append(Capsule(centre, centre.copy(), float(shape.get("radius", 0.0))))
+    return out
+
+
+def _box_capsules(centre: np.ndarray, R: np.ndarray, size: np.ndarray) -> list[Capsule]:
+    """Capsules along a box's longest edge that together enclose it: side by side across
+    its middle edge, as many as that edge is times its shortest, each just round its slice.
+    A flat box (a jaw's finger, 1.5 cm thick and 4 cm tall) is then no thicker than it is;
+    one capsule round the whole cross-section would make a finger 4.3 cm thick and close the
+    jaw's 14 cm gap to 11 cm. centre : (3,), R : (3, 3), size : (3,), metres, link frame."""
+    long, short, mid = int(np.argmax(size)), int(np.argmin(size)), 0
+    mid = 3 - long - short if long != short else (long + 1) % 3
+    count = max(1, int(np.ceil(size[mid] / size[short] - 1e-9)))
+    step = size[mid] / count
+    radius = float(np.hypot(size[short], step)) / 2
+    half = size[long] / 2 * R[:, long]
+    out = []
+    for i in range(count):
+        c = centre + (-size[mid] / 2 + (i + 0.5) * step) * R[:, mid]
+        out.append(Capsule(c - half, c + half, radius))
     return out
 
 

@@ -236,10 +236,12 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
     move = final_move(T_grasp[:3, :3], d)
+    solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
         points = waypoints(p_f, n, d, cfg.alpha_m + extent(body, n), cfg.waypoint_count,
                            cfg.beta_m, cfg.final_m, move)
-        qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg)
+        qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
+                              solved)
         if qs is not None:
             break
     else:
@@ -285,16 +287,22 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
 
 
 def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
-                     points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig
-                     ) -> np.ndarray | None:
+                     points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig,
+                     solved: dict[bytes, np.ndarray | None]) -> np.ndarray | None:
     """Joint values (k, n) at the waypoints ``points`` (k, 3), world, the tool held as in
     the grasp; solved from the grasp back to P_init, each seeding the next, so neighbours
-    stay on one branch. None if one is unreachable or only on another branch."""
-    qs, seed = [], q_f
+    stay on one branch. None if one is unreachable or only on another branch. ``solved``
+    keeps the solutions of points reached the same way before (the same P_f and pre-grasp
+    point for every offset n)."""
+    qs, seed, prefix = [], q_f, b""
     for p in points[::-1]:
-        T = T_base_grasp.copy()
-        T[:3, 3] = (T_base_world @ np.append(p, 1.0))[:3]
-        q = arm.inverse(T, seed, max_iter=cfg.ik_max_iter, restarts=cfg.ik_restarts)
+        prefix += p.tobytes()
+        if prefix not in solved:
+            T = T_base_grasp.copy()
+            T[:3, 3] = (T_base_world @ np.append(p, 1.0))[:3]
+            solved[prefix] = arm.inverse(T, seed, max_iter=cfg.ik_max_iter,
+                                         restarts=cfg.ik_restarts)
+        q = solved[prefix]
         # Waypoints a few centimetres apart need no joint to swing far: one that does has
         # jumped to another branch of the arm's solutions, a detour, not the approach.
         if q is None or np.abs(q - seed).max() > cfg.max_joint_step_rad:
