@@ -179,7 +179,7 @@ def test_reach_and_capsules(arm: ArmModel) -> None:
     assert gap < np.linalg.norm(capsules[-1][0] - capsules[-4][0])
     # Wide open, the fingers' capsules leave nearly all of the jaw's 14 cm between them.
     left, right = capsules[-6:-3], capsules[-3:]
-    inner = min(np.linalg.norm(a[0] - b[0]) - a[2] - b[2] for a, b in zip(left, right))
+    inner = min(np.linalg.norm(a[0] - b[0]) - a[2] - b[2] for a, b in zip(left, right, strict=True))
     assert arm.jaw_max_opening_m - 0.006 <= inner <= arm.jaw_max_opening_m
 
 
