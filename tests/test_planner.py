@@ -7,6 +7,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from scipy.interpolate import CubicSpline
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
@@ -20,6 +21,7 @@ from wavegrasp.planner.approach import (
 from wavegrasp.planner.collision import clearance, extent, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
+from wavegrasp.planner.timing import Limits, spline_path
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 
@@ -227,3 +229,27 @@ def test_the_standby_pose_waits_clear_of_where_the_object_sways(
     home = arm.forward(arm.q_home)[:3, 3]
     centre = seen.mean(axis=0)
     assert np.linalg.norm(arm.forward(q)[:3, 3] - centre) <= np.linalg.norm(home - centre)
+
+
+def test_the_approach_spline_is_timed_leg_by_leg_within_limits(arm: ArmModel) -> None:
+    """Long legs and a short last one with a corner (the pre-grasp point): every leg gets its
+    own duration, so the path is within velocity, acceleration and jerk everywhere and
+    quicker than one uniform stretch of the whole spline."""
+    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+    qs = np.array([[0.0, -1.2, 1.5, 0.0, 1.0, 0.0], [0.1, -1.1, 1.4, 0.1, 0.9, 0.2],
+                   [0.2, -1.0, 1.3, 0.2, 0.8, 0.4], [0.3, -0.9, 1.2, 0.3, 0.7, 0.6],
+                   [0.3, -0.88, 1.25, 0.3, 0.72, 0.6]])
+    path = spline_path(qs, limits)
+    np.testing.assert_allclose(path.spline(path.spline.x), qs, atol=1e-12)
+    t = np.linspace(0.0, path.duration, 2000)
+    for k, lim in ((1, limits.velocity), (2, limits.acceleration), (3, limits.jerk)):
+        assert np.all(np.abs(path.spline(t, k)) <= lim * 1.001), k
+    np.testing.assert_allclose(path.spline(np.array([0.0, path.duration]), 1), 0.0, atol=1e-12)
+    legs = np.sqrt(np.linalg.norm(np.diff(qs, axis=0), axis=1))
+    u = np.concatenate([[0.0], np.cumsum(legs)]) / legs.sum()
+    uniform = CubicSpline(u, qs, bc_type="clamped")
+    s = np.linspace(0.0, 1.0, 2000)
+    stretch = max(np.max(np.abs(uniform(s, k)) / (0.9 * lim)) ** (1.0 / k)
+                  for k, lim in ((1, limits.velocity), (2, limits.acceleration),
+                                 (3, limits.jerk)))
+    assert path.duration < 0.9 * stretch
