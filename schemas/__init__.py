@@ -11,6 +11,7 @@ from __future__ import annotations
 from pydantic import BaseModel
 
 from wavegrasp.schemas.messages import (
+    ArmStandby,
     ArmState,
     CartesianSample,
     Clock,
@@ -39,6 +40,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         ObjectMesh,
         MotionPrediction,
         GraspPlan,
+        ArmStandby,
         GateDecision,
         GraspOutcome,
         ArmState,
@@ -55,6 +57,7 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/perception/mesh": ObjectMesh,
     "wavegrasp/predictor/prediction": MotionPrediction,
     "wavegrasp/planner/plan": GraspPlan,
+    "wavegrasp/planner/standby": ArmStandby,
     "wavegrasp/gate/decision": GateDecision,
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
@@ -96,7 +99,7 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 __all__ = [
     "ArmState", "CartesianSample", "Clock", "FrameAck", "GateDecision", "GraspOutcome",
-    "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
+    "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
     "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
     "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
     "health_key", "model_for_key", "stats_key",

@@ -177,6 +177,20 @@ class GraspPlan(Message):
         "home pose")
 
 
+class ArmStandby(Message):
+    """``wavegrasp/planner/standby``: a move of the idle arm to where it waits, asked for
+    when no grasp can be planned from where it is (an arm that starts facing away); timed
+    from ``t_start_ns`` and checked clear of the object's predicted path. Not a grasp: the
+    arm takes it only while it executes nothing."""
+
+    header: Header
+    t_start_ns: Nanoseconds
+    joint_names: list[str]
+    joint_trajectory: list[JointSample] = Field(description="from the arm's pose to standby, "
+                                                "at rest at both ends")
+    reason: str = ""
+
+
 class GateDecision(Message):
     """``wavegrasp/gate/decision``: go only while recent prediction error stays within bounds."""
 

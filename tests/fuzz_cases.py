@@ -21,6 +21,7 @@ from wavegrasp.runtime.bus import CDR, JSON
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import (
     MESSAGE_TYPES,
+    ArmStandby,
     ArmState,
     CartesianSample,
     Clock,
@@ -380,6 +381,11 @@ EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
         samples=[PredictionSample(t_ns=10**18 + k * 10**8, x=0.1, y=-0.2, z=0.5 + 0.01 * k,
                                   sigma=0.002) for k in range(4)]),
     GraspPlan: example_plan,
+    ArmStandby: lambda: ArmStandby(
+        header=header(10**18), t_start_ns=10**18 + 10**8,
+        joint_names=[f"joint_{i}" for i in range(6)],
+        joint_trajectory=[JointSample(t_ns=10**18 + 10**8 * (k + 1), positions=[0.1 * k] * 6)
+                          for k in range(3)], reason="example"),
     GateDecision: lambda: GateDecision(header=header(10**18), plan_id="p", go=False,
                                        mean_error_m=0.004, threshold_m=0.01, window_s=2.0,
                                        reason="warming up"),

@@ -18,9 +18,11 @@ from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
     MESSAGE_TYPES,
     ROS_KEYS,
+    ArmStandby,
     ArmState,
     FrameAck,
     GateDecision,
+    JointSample,
     ObjectMesh,
     ObjectObservation,
     Vec3,
@@ -98,11 +100,23 @@ class SimScenario(Scenario):
             return message_case("valid", self.sample.prediction(self.i, seq=self.i))
         if key == "wavegrasp/planner/plan":
             return message_case("valid", example_plan("stored", t))
+        if key == "wavegrasp/planner/standby":
+            return message_case("valid", self.standby(t))
         if key == "wavegrasp/gate/decision":
             return message_case("valid", GateDecision(header=header(t), plan_id="stored",
                                                       go=False, mean_error_m=None,
                                                       threshold_m=0.01, window_s=2.0))
         return super().valid(key)
+
+    @staticmethod
+    def standby(t: int) -> ArmStandby:
+        """A valid move of the arm to where it is: its home pose, held."""
+        arm = ArmModel.load(None)
+        return ArmStandby(header=header(t), t_start_ns=t + 10**8,
+                          joint_names=list(arm.joint_names),
+                          joint_trajectory=[JointSample(t_ns=t + k * 10**8,
+                                                        positions=arm.q_home.tolist())
+                                            for k in (1, 2)])
 
     def cdr_basis(self, key: str) -> bytes:
         if key == "groundtruth/object":
@@ -137,6 +151,15 @@ class SimScenario(Scenario):
                 header=header(t), shape="sphere", volume_m3=0.0, frames=1,
                 **encode_mesh(flat, np.array([[0, 1, 2]]))),
                 r"mesh of 3 vertices: a closed mesh needs 4")]
+        if key == "wavegrasp/planner/standby":
+            other = self.standby(t).model_copy(update={"joint_names": ["a", "b"]})
+            narrow = self.standby(t)
+            narrow.joint_trajectory[0].positions = [0.0, 0.0]
+            return [message_case("standby for another arm", other,
+                                 r"standby joint_names .* are not the arm's"),
+                    message_case("standby of 2 positions a sample", narrow,
+                                 r"standby joint_trajectory needs 2 or more samples, each of 6 "
+                                 r"positions")]
         if key == "wavegrasp/planner/plan":
             narrow = example_plan("narrow", t, joints=2)
             narrow.joint_names = list(ArmModel.load(None).joint_names)

@@ -19,19 +19,25 @@ from conftest import wavegrasp_cmd
 
 #: (name, object, bearing from the object in degrees (0: the way the waves run), the
 #: shoulder's rise above the object, the mount's turn away from facing it in degrees, the
-#: camera's cloud: the second is organized, as a stereo driver publishes it).
-MOUNTS = [("sideways-turned-away", "can_half", -90.0, -0.05, 90.0, "dense"),
-          ("behind-the-swing-plane", "buoy", 120.0, -0.1, -45.0, "organized")]
+#: camera's cloud: the second is organized, as a stereo driver publishes it; the wave period,
+#: s, where not wave 2's: 0.8 s waves are forecast 2.8 s ahead, too little for an arm facing
+#: away to turn and reach the object).
+MOUNTS = [("sideways-turned-away", "can_half", -90.0, -0.05, 90.0, "dense", None),
+          ("behind-the-swing-plane", "buoy", 120.0, -0.1, -45.0, "organized", None),
+          ("facing-away", "can_half", 20.0, -0.05, 170.0, "dense", 0.8)]
 
 
-@pytest.mark.parametrize("name, obj, bearing, rise, yaw, cloud", MOUNTS,
+@pytest.mark.parametrize("name, obj, bearing, rise, yaw, cloud, period", MOUNTS,
                          ids=[m[0] for m in MOUNTS])
 def test_an_arm_mounted_elsewhere_grasps(tmp_path: Path, name: str, obj: str, bearing: float,
-                                         rise: float, yaw: float, cloud: str) -> None:
+                                         rise: float, yaw: float, cloud: str,
+                                         period: float | None) -> None:
     base = paper_scenario(2, obj)
     scenario = paper_scenario(2, obj, name=name, seconds=24.0, seed=5,
                               mount=mount_at(base.rest, 0.6, bearing, rise, yaw),
-                              camera=base.camera.model_copy(update={"cloud": cloud}))
+                              camera=base.camera.model_copy(update={"cloud": cloud}),
+                              sea=base.sea.model_copy(update={"period_s": period or
+                                                              base.sea.period_s}))
     rec = tmp_path / f"{name}.mcap"
     generate(scenario, rec)
     out = tmp_path / "run"
@@ -46,6 +52,11 @@ def test_an_arm_mounted_elsewhere_grasps(tmp_path: Path, name: str, obj: str, be
         plans = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(
             topics=["wavegrasp/planner/plan"])]
     assert plans, f"no plan: {summary.get('counters', {}).get('planner')}"
-    # The arm waits facing the object, not where its mount points.
+    # The arm waits facing the object, not where its mount points; one that starts facing
+    # away is moved there before its first plan.
     assert all(p["standby"] for p in plans)
+    if abs(yaw) > 120:
+        counters = {name: s["counters"] for name, s in summary["services"].items()}
+        assert counters["planner"].get("standby moves", 0) >= 1, counters["planner"]
+        assert counters["sim"].get("standby moves", 0) >= 1, counters["sim"]
     assert any(o["success"] for o in outcomes), outcomes

@@ -3,8 +3,9 @@
 For each warm ``wavegrasp/predictor/prediction`` while no approved plan is executing, plans a
 grasp (:func:`~wavegrasp.planner.plan.plan_grasp`) for the arm on its mount from ``tf_static``,
 starting from its latest ``wavegrasp/sim/arm_state`` (its standby pose until one arrives), and
-publishes it on ``wavegrasp/planner/plan``. The arm model is ours unless ``WAVEGRASP_ARM_URDF``
-names the vehicle's own description.
+publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from where the idle arm
+is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The arm model
+is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
 """
 
 from __future__ import annotations
@@ -21,13 +22,14 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_move, standby_pose
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
+    ArmStandby,
     ArmState,
     GateDecision,
     GraspOutcome,
@@ -42,6 +44,7 @@ from wavegrasp.schemas import (
 
 log = logging.getLogger("wavegrasp.planner")
 PLAN_KEY = "wavegrasp/planner/plan"
+STANDBY_KEY = "wavegrasp/planner/standby"
 
 
 class PlannerSettings(Settings):
@@ -97,6 +100,7 @@ class PlannerService(Service):
         self.arm_moving = False
         self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
         self.busy_until_ns = 0
+        self._standby_until_ns = 0  # a standby move asked for: none again before its end
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
@@ -208,19 +212,49 @@ class PlannerService(Service):
         except ValueError as exc:
             self.counters["skipped: no arm mount"] += 1
             raise ValueError(f"no transform to the arm's mount: {exc}") from None
-        result = plan_grasp(PredictedPath.from_message(msg), msg.header.stamp_ns * 1e-9,
-                            self.arm, T_world_base, self.q_now, self.body, self.config)
+        path = PredictedPath.from_message(msg)
+        result = plan_grasp(path, msg.header.stamp_ns * 1e-9, self.arm, T_world_base,
+                            self.q_now, self.body, self.config)
         if not isinstance(result, Plan):
             self.counters["no plan"] += 1
             for reason, n in result.items():
                 self.counters[f"rejected: {reason}"] += n
+            self.ask_standby(msg, d, path, T_world_base)
             return
         self.counters["plans"] += 1
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
-                          standby_pose(self.arm, T_world_base, np.array(self.seen).reshape(-1, 3),
-                                       self.body))
+                          self.standby(T_world_base))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
+
+
+    def standby(self, T_world_base: np.ndarray) -> np.ndarray:
+        return standby_pose(self.arm, T_world_base, np.array(self.seen).reshape(-1, 3),
+                            self.body)
+
+    def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
+                    T_world_base: np.ndarray) -> None:
+        """No plan from where the idle arm is: have it move to its standby first, once the
+        object has been seen a while and unless a move asked for earlier is still under way."""
+        if len(self.seen) < self.seen.maxlen // 2 or msg.header.stamp_ns < self._standby_until_ns:
+            return
+        move = standby_move(self.arm, T_world_base, self.q_now, self.standby(T_world_base), path,
+                            msg.header.stamp_ns * 1e-9, self.body, self.config)
+        if isinstance(move, str):
+            if move != "already there":
+                self.counters[f"standby move: {move}"] += 1
+            return
+        times, q, qd = move
+        t_ns = np.rint(times * 1e9).astype(np.int64)
+        self._standby_until_ns = int(t_ns[-1]) + 1_000_000_000
+        self.counters["standby moves"] += 1
+        self.bus.publish(STANDBY_KEY, ArmStandby.model_validate(dict(
+            header=derived_header(msg.header, self.name, d.recv_ns), t_start_ns=int(t_ns[0]),
+            joint_names=list(self.arm.joint_names),
+            joint_trajectory=[{"t_ns": t, "positions": qi, "velocities": vi}
+                              for t, qi, vi in zip(t_ns.tolist(), q.tolist(), qd.tolist(),
+                                                   strict=True)],
+            reason="no grasp can be planned from where the arm is")))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -68,6 +68,8 @@ class PlannerConfig(BaseModel):
                               "the paper's first, then turned about the final move")
     max_joint_step_rad: float = Field(1.0, description="the most a joint may turn between "
                                       "neighbouring waypoints of the approach")
+    standby_tolerance_rad: float = Field(0.3, description="an idle arm this near its standby "
+                                         "(every joint) is not moved there before a plan")
     ik_max_iter: int = 40
     ik_restarts: int = 2
 
@@ -189,6 +191,27 @@ def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
         if ready is not None and gap(ready[0]) > 0.01:
             return ready[0]
     return max([facing, arm.q_home.copy()], key=gap)
+
+
+def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
+                 q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
+                 cfg: PlannerConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
+    ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
+    why not ("already there", "cannot be timed", "collision" with the object on its
+    predicted ``path``). An arm that starts facing away cannot reach a grasp within the
+    prediction's horizon; from its standby it can."""
+    if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
+        return "already there"
+    zero = np.zeros(len(q_now))
+    move = segment(q_now, zero, zero, q_standby, zero,
+                   Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
+    if move is None:
+        return "cannot be timed"
+    times, q, qd = sample_segment(move, now + cfg.start_delay_s, cfg.sample_dt_s)
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
+        return "collision"
+    return times, q, qd
 
 
 def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:

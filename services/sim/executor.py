@@ -241,6 +241,13 @@ class Executor:
             self._return = sample_segment(move, w.time_s, 0.02)
         return result
 
+    def go_to_standby(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray) -> None:
+        """Follow a timed move of the idle arm (times (k,) s, q and qd (k, n)), as after an
+        attempt; raises ValueError while it executes or returns."""
+        if self.busy:
+            raise ValueError("the arm is executing or returning to standby")
+        self._return = (times, q, qd)
+
     def _follow_return(self, t_s: float) -> None:
         if self._return is None:
             return

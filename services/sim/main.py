@@ -31,6 +31,7 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import (
+    ArmStandby,
     ArmState,
     FrameAck,
     GateDecision,
@@ -98,6 +99,7 @@ class SimService(Service):
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self._truths = 0  # ground truths received (their attachments' sequence + 1)
         self._go: Attempt | None = None  # approved this frame, not started yet
+        self._standby: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # asked for
         self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
         self._plans_flow = False  # a decision has come: the trials can begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
@@ -111,6 +113,7 @@ class SimService(Service):
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
                            MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
+        self.bus.subscribe("wavegrasp/planner/standby", self.on_standby, ArmStandby)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
 
     def resume(self, state: dict | None) -> None:
@@ -215,6 +218,31 @@ class SimService(Service):
             self._go_waiting = None
             self.approve(msg)
             self.release_frames()
+
+    def on_standby(self, msg: ArmStandby, _d: Delivery) -> None:
+        """Kept for the frame's end, like an approval: a timed move, so whichever frame it
+        comes in before its start, the arm moves alike."""
+        if msg.joint_names != list(self.arm.joint_names):
+            raise ValueError(f"standby joint_names {msg.joint_names} are not the arm's "
+                             f"{list(self.arm.joint_names)}")
+        s = msg.joint_trajectory
+        if len(s) < 2 or any(len(x.positions) != len(msg.joint_names) for x in s):
+            raise ValueError(f"standby joint_trajectory needs 2 or more samples, each of "
+                             f"{len(msg.joint_names)} positions")
+        if any(b.t_ns <= a.t_ns for a, b in zip(s, s[1:], strict=False)):
+            raise ValueError("standby joint_trajectory t_ns not strictly increasing")
+        self._standby = (np.array([x.t_ns for x in s]) * 1e-9, np.array([x.positions for x in s]),
+                         np.array([x.velocities or [0.0] * len(msg.joint_names) for x in s]))
+
+    def start_standby(self) -> None:
+        move, self._standby = self._standby, None
+        if move is None or self.executor is None:
+            return
+        if self.executor.busy or self._go is not None:
+            self.counters["standby moves ignored: busy"] += 1
+            return
+        self.executor.go_to_standby(*move)
+        self.counters["standby moves"] += 1
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         self._plans_flow = True  # trial 0 begins at this frame's end
@@ -341,6 +369,7 @@ class SimService(Service):
         if self._idle_since is None and self._plans_flow:  # trial 0 begins
             self._idle_since = self.world.time_s
         self.start_attempt()
+        self.start_standby()
         if self.executor is not None:
             self.check_trial_timeout()
             if self._mesh is not None and not self.executor.busy:
