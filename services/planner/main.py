@@ -2,7 +2,7 @@
 
 For each warm ``wavegrasp/predictor/prediction`` while no approved plan is executing, plans a
 grasp (:func:`~wavegrasp.planner.plan.plan_grasp`) for the arm on its mount from ``tf_static``,
-starting from its latest ``wavegrasp/sim/arm_state`` (its standby pose until one arrives), and
+starting from its latest ``wavegrasp/sim/arm_state`` (its home pose until one arrives), and
 publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from where the idle arm
 is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The arm model
 is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
