@@ -83,7 +83,7 @@ class ObjectObservation(Message):
     sigma_m: float | None = Field(None, ge=0.0,
                                   description="1-sigma centroid uncertainty, metres")
     reason: str | None = None
-    shape: Literal["sphere", "cylinder"] | None = None
+    shape: Literal["sphere", "cylinder", "box", "revolution"] | None = None
     axis: Vec3 | None = Field(None, description="unit symmetry axis, world (cylinder)")
     radius_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
     length_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
@@ -99,7 +99,7 @@ class ObjectMesh(Message):
     """
 
     header: Header
-    shape: Literal["sphere", "cylinder"]
+    shape: Literal["sphere", "cylinder", "box", "revolution"]
     vertices_b64: str
     triangles_b64: str
     vertex_count: Count

@@ -19,6 +19,8 @@ ROBUST_SCALE = 0.002  # metres: the Cauchy loss is quadratic below this residual
 CAP_MIN_POINTS = 8  # a flat end needs this many points to set the end's position by itself
 END_MARGIN = 0.005  # metres: the wall refit leaves out points this close to an end (cap rims)
 GAP = 15.0  # mean point spacings (and >= 5 mm): a wider gap along the axis splits off strays
+BOX_EXPLAINED = 0.8  # fit_shape: a box's faces must hold this fraction of the points
+EXPLAINED_MORE = 0.05  # fit_shape: or a free outline explains this many more of the points
 SHAPE_RMS_RATIO = 0.7  # fit_shape: the cylinder must beat the sphere's RMS by this factor
 
 Model = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -28,15 +30,19 @@ Model = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 class ShapeFit:
     """One fitted object, in the frame of the points; lengths in metres."""
 
-    shape: str  # "sphere" or "cylinder"
+    shape: str  # "sphere", "cylinder" or "box"
     centre: np.ndarray  # shape (3,), the volume centroid
-    axis: np.ndarray  # shape (3,), unit, the cylinder's axis, axis[2] >= 0; (0, 0, 1) for a sphere
+    axis: np.ndarray  # shape (3,), unit, the cylinder's (box's longest) axis, axis[2] >= 0;
+    # (0, 0, 1) for a sphere
     radius: float
     length: float  # 2 * radius for a sphere
     rms: float  # RMS of the inliers' point-to-surface residuals
     inliers: np.ndarray  # shape (n,), bool, the points explained by the fitted surface
     sigma: float  # sqrt(trace(cov)): RMS of the 3-D centre error (each axis' std is below it)
     cov: np.ndarray | None = None  # shape (3, 3), square metres, the centre's covariance
+    frame: np.ndarray | None = None  # a box: shape (3, 3), its axes (columns)
+    size: np.ndarray | None = None  # a box: shape (3,), metres, its extents along them
+    whole: np.ndarray | None = None  # a box: shape (3,), bool, the extent seen whole
 
 
 def check_points(points: np.ndarray, min_points: int = 20) -> np.ndarray:
@@ -249,16 +255,42 @@ def fit_cylinder(points: np.ndarray, viewpoint: np.ndarray, radius: float | None
 
 
 def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = None) -> ShapeFit:
-    """Fit the object: with `prior`, its shape with its radius (and length) fixed; else choose.
+    """Fit the object: with `prior`, its shape with its sizes fixed; else choose.
+
+    A box (box.py) wins when its faces hold BOX_EXPLAINED of the points, every extent is seen
+    and its RMS is lower; a free solid of revolution (revolution.py: ellipsoids, bottles with
+    a neck) when its RMS beats the sphere's or cylinder's by SHAPE_RMS_RATIO or it explains
+    EXPLAINED_MORE more of the points (a cylinder fit leaves a neck out as outliers).
 
     Else both are fitted with free sizes and the sphere wins unless the cylinder's RMS is below
     SHAPE_RMS_RATIO times the sphere's: a sphere fitted to a cylinder leaves residuals of several
     millimetres (the wall is straight along the axis), a cylinder fitted to a sphere does no
     better than the sphere (measured: 4-7 times worse); ties go to the simpler sphere.
     """
+    # box.py and revolution.py build on this module.
+    from wavegrasp.perception.box import fit_box
+    from wavegrasp.perception.revolution import fit_revolution
+
     if prior is not None:
         if prior.shape == "sphere":
             return fit_sphere(points, viewpoint, prior.radius)
+        if prior.shape == "box":
+            return fit_box(points, viewpoint, prior)
+        if prior.shape == "revolution":
+            return fit_revolution(points, viewpoint, prior)
         return fit_cylinder(points, viewpoint, prior.radius, prior.length, prior.axis)
     sphere, cylinder = fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint)
-    return cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
+    best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
+    for fit in (fit_box, fit_revolution):
+        try:
+            other = fit(points, viewpoint)
+        except ValueError:
+            continue
+        if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
+                other.whole) or other.rms >= best.rms):
+            continue
+        if other.shape == "revolution" and other.rms >= SHAPE_RMS_RATIO * best.rms and (
+                other.inliers.mean() < best.inliers.mean() + EXPLAINED_MORE):
+            continue
+        best = other
+    return best

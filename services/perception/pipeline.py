@@ -11,7 +11,7 @@ one-sided view does not pull it towards the camera.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -207,7 +207,26 @@ def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
     shape = max(set(shapes), key=shapes.count)
     same = [f for f in fits if f.shape == shape]
     best = min(same, key=lambda f: f.rms)
+    if shape == "box":
+        return learnt_box(same, best)
     radius = float(np.median([f.radius for f in same]))
     length = 2 * radius if shape == "sphere" else float(np.median([f.length for f in same]))
     return ShapeFit(shape=shape, centre=best.centre, axis=best.axis, radius=radius,
                     length=length, rms=best.rms, inliers=best.inliers, sigma=best.sigma)
+
+
+def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
+    """A box's sizes: per axis of ``best``'s frame, the median over the fits that saw that
+    extent whole (each fit's axes matched to ``best``'s by direction)."""
+    assert best.frame is not None
+    seen: list[list[float]] = [[], [], []]
+    for f in fits:
+        assert f.frame is not None and f.size is not None and f.whole is not None
+        match = np.argmax(np.abs(best.frame.T @ f.frame), axis=1)
+        for k in range(3):
+            if f.whole[match[k]]:
+                seen[k].append(float(f.size[match[k]]))
+    size = np.array([np.median(v) if v else best.size[k] for k, v in enumerate(seen)])
+    long = int(np.argmax(size))
+    return replace(best, size=size, radius=float(np.hypot(*np.delete(size, long))) / 2,
+                   length=float(size[long]))

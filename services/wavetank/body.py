@@ -10,6 +10,7 @@ inside that sphere. The body's axis points along the tether.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -24,24 +25,55 @@ class ObjectSpec:
     """An object configuration. Lengths metres, mass kg, volume m³ (displaced, sealed)."""
 
     name: str
-    shape: str  # "cylinder" (axis along the tether) or "sphere"
-    radius: float
-    length: float  # cylinder length; 2·radius for a sphere
+    shape: str  # sphere, cylinder, ellipsoid, box or bottle; the axis along the tether (body z)
+    radius: float  # half the width across (a box: along body x)
+    length: float  # along the axis; 2·radius for a sphere
     mass: float
     volume: float
     drag_coefficient: float
     added_mass_coefficient: float
     description: str
+    depth: float = 0.0  # a box: its extent along body y
+    neck_radius: float = 0.0  # a bottle: its neck ...
+    neck_length: float = 0.0  # ... and the neck's length (a 45° shoulder joins it to the body)
+    neck_down: bool = True  # a bottle: the neck at the tether's end (tethered at the cap)
+    turn_deg: float = 0.0  # turned about its axis (a box's faces), degrees
+
+    def profile(self) -> tuple[np.ndarray, np.ndarray]:
+        """An axisymmetric object's outline: heights z from its lower end (the tether's end)
+        and radii r there, metres, shape (k,) each; ValueError for a box."""
+        return profile(self)
 
     @property
     def attach_offset(self) -> float:
-        """Distance from the tether's attachment point to the centroid, metres."""
-        return self.length / 2
+        """Distance from the tether's attachment point to the volume centroid, metres."""
+        if self.shape != "bottle":
+            return self.length / 2
+        return solid_of_revolution(*self.profile())[1]
 
     @property
     def projected_area(self) -> float:
-        """Frontal area for drag, m² (cross-flow for a cylinder)."""
-        return np.pi * self.radius**2 if self.shape == "sphere" else 2 * self.radius * self.length
+        """Frontal area for drag, m² (across the axis; a box: its faces' mean)."""
+        if self.shape == "box":
+            return self.length * (2 * self.radius + self.depth) / 2
+        if self.shape in ("sphere", "ellipsoid"):  # an ellipse's area, exactly
+            return np.pi * self.radius * self.length / 2
+        z, r = self.profile()
+        return float(np.sum(np.diff(z) * (r[1:] + r[:-1])))
+
+    @property
+    def width_across(self) -> float:
+        """The widest the object is across its axis, metres (a box: its diagonal)."""
+        return float(np.hypot(2 * self.radius, self.depth)) if self.shape == "box" else (
+            2 * self.radius)
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius of the smallest sphere about the volume centroid that holds it, metres."""
+        if self.shape == "box":
+            return 0.5 * float(np.linalg.norm([2 * self.radius, self.depth, self.length]))
+        z, r = self.profile()
+        return float(np.max(np.hypot(r, z - self.attach_offset)))
 
     @property
     def net_buoyancy(self) -> float:
@@ -51,9 +83,40 @@ class ObjectSpec:
     def scaled(self, factor: float) -> ObjectSpec:
         """The same object ``factor`` times larger (mass scales with volume)."""
         check_positive("scale", factor)
-        return ObjectSpec(f"{self.name}x{factor:g}", self.shape, self.radius * factor,
-                          self.length * factor, self.mass * factor**3, self.volume * factor**3,
-                          self.drag_coefficient, self.added_mass_coefficient, self.description)
+        return dataclasses.replace(
+            self, name=f"{self.name}x{factor:g}", radius=self.radius * factor,
+            length=self.length * factor, mass=self.mass * factor**3,
+            volume=self.volume * factor**3, depth=self.depth * factor,
+            neck_radius=self.neck_radius * factor, neck_length=self.neck_length * factor)
+
+
+def profile(spec: ObjectSpec, samples: int = 65) -> tuple[np.ndarray, np.ndarray]:
+    """See :meth:`ObjectSpec.profile`; ``samples`` heights for a sphere or an ellipsoid."""
+    r0, length = spec.radius, spec.length
+    if spec.shape in ("sphere", "ellipsoid"):
+        theta = np.linspace(np.pi, 0.0, samples)
+        return length / 2 * (1 + np.cos(theta)), r0 * np.sin(theta)
+    if spec.shape == "cylinder":
+        return np.array([0.0, length]), np.array([r0, r0])
+    if spec.shape == "bottle":
+        neck, shoulder = spec.neck_length, spec.neck_length + (r0 - spec.neck_radius)
+        z = np.array([0.0, neck, shoulder, length])
+        r = np.array([spec.neck_radius, spec.neck_radius, r0, r0])
+        return (z, r) if spec.neck_down else (length - z[::-1], r[::-1])
+    raise ValueError(f"shape {spec.shape!r} has no profile (not a solid of revolution)")
+
+
+def solid_of_revolution(z: np.ndarray, r: np.ndarray) -> tuple[float, float]:
+    """Volume (m³) and the volume centroid's height (metres, from z[0]) of the solid that the
+    outline ``z``, ``r`` (shape (k,) each, z ascending) sweeps about its axis: frusta summed."""
+    z, r = np.asarray(z, dtype=float), np.asarray(r, dtype=float)
+    h, a, b = np.diff(z), r[:-1], r[1:]
+    s = a * a + a * b + b * b
+    volume = np.pi * h * s / 3
+    centroid = z[:-1] + np.divide(h * (a * a + 2 * a * b + 3 * b * b), 4 * s,
+                                  out=h / 2, where=s > 0)
+    total = float(volume.sum())
+    return total, float(volume @ centroid / total) - float(z[0])
 
 
 def _cylinder(name: str, radius: float, length: float, mass: float, cd: float, ca: float,

@@ -15,8 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
 
 from wavegrasp.checks import check_fraction, check_positive, check_transform
+from wavegrasp.wavetank.body import ObjectSpec
 
 Mesh = o3d.t.geometry.TriangleMesh
 
@@ -57,6 +59,55 @@ def sphere_mesh(radius: float, resolution: int = 1500) -> Mesh:
     inward = np.einsum("ij,ij->i", normals, unit[tri[:, 0]]) < 0
     tri[inward] = tri[inward][:, ::-1]  # outward-facing triangles (counter-clockwise)
     return _mesh(radius * unit, tri)
+
+
+def lathe_mesh(z: np.ndarray, r: np.ndarray, segments: int = 64) -> Mesh:
+    """Return the closed solid that the outline ``z``, ``r`` (metres, shape (k,) each, z
+    ascending; r > 0) sweeps about body z, as a mesh in body frame, its ends closed flat.
+
+    ``segments`` facets around the axis.
+    """
+    z, r = np.asarray(z, dtype=float), np.asarray(r, dtype=float)
+    if z.shape != r.shape or z.ndim != 1 or len(z) < 2 or np.any(np.diff(z) < 0) or np.any(
+            r <= 0):
+        raise ValueError("the outline needs k >= 2 heights, ascending, and radii > 0; got "
+                         f"z {z.shape}, r {r.shape}")
+    phi = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
+    ring = np.column_stack([np.cos(phi), np.sin(phi)])
+    rings = [np.column_stack([ri * ring, np.full(segments, zi)])
+             for zi, ri in zip(z, r, strict=True)]
+    vertices = np.vstack([*rings, [[0.0, 0.0, z[0]], [0.0, 0.0, z[-1]]]])
+    j = np.arange(segments)
+    k = (j + 1) % segments
+    tri = []
+    for i in range(len(z) - 1):  # two triangles per facet, outward
+        a, b = i * segments, (i + 1) * segments
+        tri += [np.column_stack([a + j, a + k, b + k]), np.column_stack([a + j, b + k, b + j])]
+    bottom, top, last = len(vertices) - 2, len(vertices) - 1, (len(z) - 1) * segments
+    tri += [np.column_stack([np.full(segments, bottom), k, j]),
+            np.column_stack([np.full(segments, top), last + j, last + k])]
+    return _mesh(vertices, np.vstack(tri))
+
+
+def object_mesh(spec: ObjectSpec) -> Mesh:
+    """The object ``spec`` describes, closed, in its body frame: origin at its volume
+    centroid, z along its axis (from the tether's end)."""
+    if spec.shape == "sphere":
+        return sphere_mesh(spec.radius)
+    if spec.shape == "cylinder":
+        return cylinder_mesh(spec.radius, spec.length)
+    if spec.shape == "box":
+        size = np.array([2 * spec.radius, spec.depth, spec.length])
+        turn = o3d.core.Tensor(Rotation.from_euler("z", spec.turn_deg, degrees=True)
+                               .as_matrix())
+        return Mesh.create_box(*size).translate(-size / 2).rotate(turn, o3d.core.Tensor(
+            np.zeros(3)))
+    if spec.shape == "ellipsoid":
+        unit = sphere_mesh(1.0)
+        scale = np.array([spec.radius, spec.radius, spec.length / 2], dtype=np.float32)
+        return _mesh(unit.vertex.positions.numpy() * scale, unit.triangle.indices.numpy())
+    z, r = spec.profile()
+    return lathe_mesh(z - spec.attach_offset, r)
 
 
 def seabed_mesh(size_x: float, size_y: float) -> Mesh:

@@ -27,8 +27,8 @@ from wavegrasp.wavetank.camera import (
     TrisectCamera,
     cylinder_mesh,
     look_at,
+    object_mesh,
     seabed_mesh,
-    sphere_mesh,
     transform,
 )
 from wavegrasp.wavetank.scenario import (
@@ -190,8 +190,7 @@ def generate(what: RecordConfig | Scenario, out: Path,
     T_cam = look_at(eye, np.asarray(s.camera.target, dtype=float))
     camera = TrisectCamera(T_world_optical=T_cam, **s.camera.sensor())
     spec = traj.spec
-    shape = sphere_mesh(spec.radius) if spec.shape == "sphere" else cylinder_mesh(
-        spec.radius, spec.length)
+    shape = object_mesh(spec)
     seabed = seabed_mesh(4.0, 4.0)
     arm_pos, arm_q = arm_mount(s)
     cam_q = Rotation.from_matrix(T_cam[:3, :3]).as_quat(canonical=True)

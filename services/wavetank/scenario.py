@@ -12,6 +12,7 @@ planning and the gate see what a vehicle gives them (clouds, ``tf_static``, the 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from pathlib import Path
@@ -22,7 +23,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.wavetank.body import OBJECTS, ObjectSpec
+from wavegrasp.wavetank.body import OBJECTS, ObjectSpec, solid_of_revolution
 from wavegrasp.wavetank.waves import TABLE_I
 
 Vec3 = tuple[float, float, float]
@@ -52,13 +53,29 @@ class SeaSpec(Strict):
     current_deg: float = Field(20.0, description="its direction, degrees from +x")
 
 
-class ObjectModel(Strict):
-    """The tethered object: its shape and size (metres), mass (kg) and tether."""
+FAMILIES = ("sphere", "cylinder", "ellipsoid", "box", "bottle")
 
-    family: Literal["sphere", "cylinder"]
+
+class ObjectModel(Strict):
+    """The tethered object: its shape and size (metres), mass (kg) and tether.
+
+    The object's axis runs along the tether. ``diameter_m`` is its width across (a box: along
+    its x); ``length_m`` its length along the axis (an ellipsoid: that diameter; a bottle: cap
+    to base). A box also has ``depth_m`` (along its y); a bottle a neck (``neck_diameter_m``,
+    ``neck_length_m``, joined to the body by a 45° shoulder), down at the tether or up.
+    """
+
+    family: Literal["sphere", "cylinder", "ellipsoid", "box", "bottle"]
     diameter_m: float = Field(gt=0.01, le=0.5)
     length_m: float | None = Field(None, gt=0.01, le=1.0,
-                                   description="cylinder length (axis along the tether)")
+                                   description="length along the axis (the tether's direction)")
+    depth_m: float | None = Field(None, gt=0.01, le=0.5, description="a box's third side")
+    neck_diameter_m: float | None = Field(None, gt=0.005, le=0.3)
+    neck_length_m: float | None = Field(None, gt=0.0, le=0.5)
+    neck: Literal["down", "up"] = Field("down", description="a bottle's neck at the tether "
+                                        "(tethered at the cap) or away from it")
+    turn_deg: float = Field(0.0, ge=-180, le=180, description="the object turned about its "
+                            "axis, degrees (which of a box's faces the camera sees)")
     mass_kg: float = Field(gt=0)
     rest_height_m: float = Field(TANK_REST_HEIGHT_M, gt=0.05, description="centroid above "
                                  "the seabed with the tether taut and vertical (the tether is "
@@ -69,33 +86,56 @@ class ObjectModel(Strict):
 
     @model_validator(mode="after")
     def _shape(self) -> ObjectModel:
-        if (self.family == "cylinder") != (self.length_m is not None):
-            raise ValueError("length_m: a cylinder needs one, a sphere has none")
+        f = self.family
+        if (f != "sphere") != (self.length_m is not None):
+            raise ValueError(f"length_m: a {f} "
+                             f"{'has none' if f == 'sphere' else 'needs one'} (a sphere has "
+                             "none, every other family needs one)")
+        if (f == "box") != (self.depth_m is not None):
+            raise ValueError(f"depth_m: only a box has one (family {f})")
+        necked = self.neck_diameter_m is not None and self.neck_length_m is not None
+        if (f == "bottle") != necked or (f != "bottle" and (
+                self.neck_diameter_m is not None or self.neck_length_m is not None)):
+            raise ValueError(f"neck_diameter_m, neck_length_m: a bottle needs both, other "
+                             f"families have neither (family {f})")
+        if f == "bottle":
+            assert self.length_m is not None and self.neck_diameter_m is not None
+            if self.neck_diameter_m >= self.diameter_m:
+                raise ValueError("neck_diameter_m: must be narrower than diameter_m")
+            shoulder = (self.diameter_m - self.neck_diameter_m) / 2
+            if self.neck_length_m + shoulder >= self.length_m - 0.01:
+                raise ValueError("neck_length_m: the neck and its 45° shoulder leave no body "
+                                 f"in a {self.length_m:g} m bottle")
         return self
 
     def spec(self) -> ObjectSpec:
         """The generator's physical description."""
-        r = self.diameter_m / 2
-        if self.family == "sphere":
-            return ObjectSpec(self.name, "sphere", r, 2 * r, self.mass_kg, 4 / 3 * math.pi * r**3,
-                              self.drag_coefficient, self.added_mass_coefficient, self.name)
-        assert self.length_m is not None
-        return ObjectSpec(self.name, "cylinder", r, self.length_m, self.mass_kg,
-                          math.pi * r**2 * self.length_m, self.drag_coefficient,
-                          self.added_mass_coefficient, self.name)
+        r, f = self.diameter_m / 2, self.family
+        length = 2 * r if self.length_m is None else self.length_m
+        spec = ObjectSpec(self.name, f, r, length, self.mass_kg, 0.0, self.drag_coefficient,
+                          self.added_mass_coefficient, self.name, depth=self.depth_m or 0.0,
+                          neck_radius=(self.neck_diameter_m or 0.0) / 2,
+                          neck_length=self.neck_length_m or 0.0, neck_down=self.neck == "down",
+                          turn_deg=self.turn_deg)
+        if f == "box":
+            volume = self.diameter_m * (self.depth_m or 0.0) * length
+        elif f == "bottle":
+            volume = solid_of_revolution(*spec.profile())[0]
+        else:  # exact
+            volume = math.pi * r**2 * length * (1.0 if f == "cylinder" else 2 / 3)
+        return dataclasses.replace(spec, volume=volume)
 
     @property
     def bounding_radius_m(self) -> float:
         """Radius of the smallest sphere about the centroid that holds the object."""
-        half = (self.length_m or self.diameter_m) / 2
-        return math.hypot(self.diameter_m / 2, half) if self.family == "cylinder" else half
+        return self.spec().bounding_radius
 
     @classmethod
     def named(cls, name: str) -> ObjectModel:
         """One of the paper's objects (``bottle``, ``can_empty``, ``can_half``, ``buoy``)."""
         s = OBJECTS[name]
         return cls(family=s.shape, diameter_m=2 * s.radius,
-                   length_m=s.length if s.shape == "cylinder" else None, mass_kg=s.mass,
+                   length_m=None if s.shape == "sphere" else s.length, mass_kg=s.mass,
                    drag_coefficient=s.drag_coefficient,
                    added_mass_coefficient=s.added_mass_coefficient, name=name)
 

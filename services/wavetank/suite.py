@@ -3,8 +3,11 @@
 Ranges (regular seas; irregular ones come with their own suite):
 - sea: height 0.05-0.35 m, period 0.8-2.5 s, current 0-5 cm/s in any direction; the water
   0.3-0.6 m deeper than the object's rest height;
-- object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; 25-75 % of the
-  displaced water's mass (buoyant enough to keep the tether taut); rest 0.3-0.7 m up;
+- object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; a third of the
+  spheres are ellipsoids (0.6-1.7 times as long as wide), a third of the cylinders boxes (the
+  third side 0.5-1 times the width) and another third bottles (neck 0.3-0.5 of the width, down
+  at the tether seven times in ten); 25-75 % of the displaced water's mass (buoyant enough
+  to keep the tether taut); rest 0.3-0.7 m up;
 - arm mount: its shoulder 0.4-0.85 m from the object's rest position, at any bearing, from 0.4 m
   below to 0.2 m above it, the mount turned -180..180 deg from facing it;
 - camera: 0.5-1.6 m from the object at any bearing, 0-40 deg above it, looking at it; 5-30 Hz.
@@ -37,20 +40,36 @@ RESOLUTIONS = ((320, 240), (256, 192), (400, 300))
 RATES_HZ = (5.0, 10.0, 15.0, 20.0, 30.0)
 
 
-def draw_object(rng: np.random.Generator) -> ObjectModel:
+def draw_object(rng: np.random.Generator, shapes: np.random.Generator) -> ObjectModel:
+    """A sphere or a cylinder from ``rng``; ``shapes`` (its own generator, so that adding the
+    other families left every other draw as it was) makes a third of the spheres ellipsoids,
+    and a third of the cylinders boxes and another third bottles with a neck."""
     family = "sphere" if rng.random() < 0.5 else "cylinder"
+    extra: dict[str, float | str] = {}
     if family == "sphere":
         d = rng.uniform(0.06, 0.18)
-        volume, length, cd, ca = math.pi * d**3 / 6, None, 0.5, 0.5
+        length, cd, ca = None, 0.5, 0.5
+        if shapes.random() < 1 / 3:
+            family, length = "ellipsoid", d * shapes.uniform(0.6, 1.7)
     else:
         d, length = rng.uniform(0.04, 0.12), rng.uniform(0.08, 0.32)
-        volume, cd, ca = math.pi * d**2 / 4 * length, 0.8, 0.6
-    mass = 1000.0 * volume * rng.uniform(0.25, 0.75)
-    return ObjectModel(family=family, diameter_m=round(d, 4),
-                       length_m=None if length is None else round(length, 4),
-                       mass_kg=round(mass, 4), rest_height_m=round(rng.uniform(0.3, 0.7), 3),
-                       drag_coefficient=cd, added_mass_coefficient=ca,
-                       name=f"{family}-{d * 100:.0f}cm")
+        cd, ca = 0.8, 0.6
+        pick = shapes.random()
+        if pick < 1 / 3:
+            family, extra = "box", {"depth_m": round(d * shapes.uniform(0.5, 1.0), 4)}
+        elif pick < 2 / 3:
+            neck = d * shapes.uniform(0.3, 0.5)
+            room = length - (d - neck) / 2 - 0.02  # the body keeps at least 2 cm
+            family, extra = "bottle", {
+                "neck_diameter_m": round(neck, 4),
+                "neck_length_m": round(max(0.005, room * shapes.uniform(0.2, 0.5)), 4),
+                "neck": "down" if shapes.random() < 0.7 else "up"}
+    fill = rng.uniform(0.25, 0.75)  # of the displaced water's mass
+    obj = ObjectModel(family=family, diameter_m=round(d, 4),
+                      length_m=None if length is None else round(length, 4), mass_kg=1.0,
+                      rest_height_m=round(rng.uniform(0.3, 0.7), 3), drag_coefficient=cd,
+                      added_mass_coefficient=ca, name=f"{family}-{d * 100:.0f}cm", **extra)
+    return obj.model_copy(update={"mass_kg": round(1000.0 * obj.spec().volume * fill, 4)})
 
 
 def mount_at(rest: np.ndarray, distance_m: float, bearing_deg: float, rise_m: float,
@@ -78,7 +97,7 @@ CLOUDS = ("dense", "organized")
 
 def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int) -> Scenario:
     """One draw; raises ValueError if it cannot be."""
-    obj = draw_object(rng)
+    obj = draw_object(rng, np.random.default_rng([seed, 2]))
     rest = np.array([0.0, 0.0, obj.rest_height_m])
     depth = obj.rest_height_m + obj.bounding_radius_m + rng.uniform(0.3, 0.6)
     sea = SeaSpec(height_m=round(rng.uniform(0.05, 0.35), 3),
@@ -146,7 +165,8 @@ def grasp_verdict(s: Scenario) -> str | None:
     if reach:
         return reach
     arm = default_arm()
-    if s.object.diameter_m >= arm.jaw_max_opening_m:
-        return (f"the object is {s.object.diameter_m * 100:.1f} cm across, the jaw opens "
+    across = s.object.spec().width_across
+    if across >= arm.jaw_max_opening_m:
+        return (f"the object is up to {across * 100:.1f} cm across, the jaw opens "
                 f"{arm.jaw_max_opening_m * 100:.1f} cm")
     return None

@@ -1,0 +1,137 @@
+"""Fit a box to a one-sided noisy point cloud from its flat faces; return its volume centre.
+
+A camera sees one to three faces of a box. Each is found by RANSAC (open3d) and refitted by
+least squares; the faces' normals give the box's axes. Along an axis whose face is seen, the
+centre lies half the box's size behind that face (the face's position is set by hundreds of
+points, so to a fraction of a millimetre); along an axis whose two faces are both hidden, the
+centre is the middle of the seen faces' extent along it. Sizes come from the extents of frames
+that see the whole of an axis (a face parallel to it is seen), learnt over the first frames.
+A sphere or cylinder fit of a box is off by its faces' flatness (18 mm measured on a 15 cm box).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from wavegrasp.perception.fit import MIN_THRESHOLD, ShapeFit, check_points, check_vector
+
+FACE_MIN_POINTS = 12  # a face needs this many points (and 3 % of the object's) to count
+SQUARE = 0.25  # |cos| between two faces' normals above this: not two faces of one box
+EDGE_ROWS = 0.5  # see _edge_gap
+TRIM = 0.005  # the fraction of points left out at each end of an extent (edge noise)
+
+
+def _faces(p: np.ndarray, viewpoint: np.ndarray) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Up to three faces, each (unit normal towards the camera, offset d: n·x = d on the face,
+    indices of its points)."""
+    left, faces = np.arange(len(p)), []
+    o3d.utility.random.seed(0)  # RANSAC: the same cloud gives the same faces
+    while len(faces) < 3 and len(left) >= FACE_MIN_POINTS:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[left]))
+        _, inl = pcd.segment_plane(MIN_THRESHOLD, 3, 200)
+        idx = left[np.asarray(inl, dtype=int)]
+        if len(idx) < max(FACE_MIN_POINTS, 0.03 * len(p)):
+            break
+        q = p[idx]
+        n = np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))[1][:, 0]
+        keep = np.abs((q - q.mean(axis=0)) @ n) < MIN_THRESHOLD
+        idx, q = idx[keep], q[keep]
+        centre = q.mean(axis=0)
+        n = n if n @ (viewpoint - centre) > 0 else -n
+        left = np.setdiff1d(left, idx)
+        if all(abs(n @ f[0]) < SQUARE for f in faces):
+            faces.append((n, float(n @ centre), idx))
+    return faces
+
+
+def _axes(faces: list, prior: ShapeFit | None, p: np.ndarray) -> np.ndarray:
+    """The box's axes (columns, right-handed) from its faces' normals, in the prior's order."""
+    n = [f[0] for f in faces]
+    a = n[0]
+    if len(n) > 1:
+        b = n[1] - (n[1] @ a) * a
+    elif prior is not None and prior.frame is not None:  # the prior axis most across a
+        b = max(prior.frame.T, key=lambda v: 1 - abs(v @ a))
+        b = b - (b @ a) * a
+    else:  # the seen face's long direction
+        q = p[faces[0][2]]
+        b = np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))[1][:, -1]
+    b /= np.linalg.norm(b)
+    E = np.column_stack([a, b, np.cross(a, b)])
+    if prior is None or prior.frame is None:
+        return E
+    order = np.argmax(np.abs(prior.frame.T @ E), axis=1)  # prior axis i ~ E[:, order[i]]
+    if len(set(order.tolist())) < 3:
+        return E
+    E = E[:, order] * np.sign(np.einsum("ij,ij->j", prior.frame, E[:, order]))
+    return E if np.linalg.det(E) > 0 else E * np.array([1.0, 1.0, -1.0])
+
+
+def _edge_gap(q: np.ndarray, direction: np.ndarray) -> float:
+    """How far short of a face's edge along ``direction`` its last points fall, metres.
+
+    The points of a face seen obliquely lie in rows; the row spacing along ``direction``
+    (the largest step to one of a point's six nearest neighbours) is the step; the last row
+    falls half a step short on average, and the density filter before the fit drops about
+    one more row at an edge.
+    """
+    _, nn = cKDTree(q).query(q, k=min(7, len(q)))
+    step = np.abs((q[nn[:, 1:]] - q[:, None, :]) @ direction).max(axis=1)
+    return EDGE_ROWS * float(np.median(step))
+
+
+def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = None) -> ShapeFit:
+    """Fit a box to points seen from ``viewpoint``; with ``prior`` (a learnt box), its sizes.
+
+    points : array, shape (n, 3), metres; viewpoint : array, shape (3,), same frame. Raises
+    ValueError if no face is found. The fit's ``frame`` holds the box's axes (columns) and
+    ``size`` its extents along them; ``axis`` is its longest axis, ``radius`` half its widest
+    extent across that axis (the diagonal), ``length`` its extent along it.
+    """
+    p, vp = check_points(points), check_vector("viewpoint", viewpoint)
+    faces = _faces(p, vp)
+    if not faces:
+        raise ValueError("no flat face found")
+    E = _axes(faces, prior, p)
+    normals = np.array([f[0] for f in faces])
+    along = np.abs(normals @ E).argmax(axis=1)  # the axis each face is across
+    seen_size, centre_e, var, whole = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3, bool)
+    face_at: dict[int, tuple[float, float, float]] = {}  # axis -> (position, sign, variance)
+    rms = np.zeros(len(faces))
+    for j, (n, d, idx) in enumerate(faces):
+        k = along[j]
+        rms[j] = float(np.sqrt(np.mean((p[idx] @ n - d) ** 2)))
+        cos = float(n @ E[:, k])
+        face_at.setdefault(int(k), (d / cos, float(np.sign(cos)), rms[j] ** 2 / len(idx)))
+    for k in range(3):
+        side = [f[2] for j, f in enumerate(faces) if along[j] != k]
+        if not side:
+            continue
+        q = p[np.concatenate(side)]
+        h = q @ E[:, k]
+        lo, hi = np.quantile(h, TRIM), np.quantile(h, 1 - TRIM)
+        gap = _edge_gap(q, E[:, k])
+        whole[k] = True
+        if k in face_at:  # from the seen face (exact) to the far edge
+            pos, sign, _ = face_at[k]
+            seen_size[k] = sign * (pos - (lo if sign > 0 else hi)) + gap
+        else:  # both faces hidden: between the two edges
+            seen_size[k], centre_e[k], var[k] = hi - lo + 2 * gap, (lo + hi) / 2, gap**2
+    size = seen_size if prior is None or prior.size is None else prior.size
+    for k, (pos, sign, v) in face_at.items():
+        if prior is None and not whole[k]:
+            raise ValueError("a box seen face-on only: its depth is hidden")
+        centre_e[k], var[k] = pos - sign * size[k] / 2, v
+    on_face = np.concatenate([f[2] for f in faces])
+    centre = E @ centre_e
+    inliers = np.zeros(len(p), bool)
+    inliers[on_face] = True
+    long = int(np.argmax(size))
+    axis = E[:, long] if E[2, long] >= 0 else -E[:, long]
+    across = np.delete(size, long)
+    cov = E @ np.diag(var) @ E.T
+    return ShapeFit("box", centre, axis, float(np.hypot(*across)) / 2, float(size[long]),
+                    float(np.sqrt(np.mean(rms**2))), inliers, float(np.sqrt(var.sum())), cov,
+                    frame=E, size=np.asarray(size, dtype=float), whole=whole)
