@@ -112,10 +112,12 @@ def test_random_scenarios_are_deterministic_and_span_the_documented_ranges() -> 
         assert 0.8 <= s.sea.period_s <= 2.5 and 0.05 <= s.sea.height_m <= 0.35
         assert 5 <= s.camera.rate_hz <= 30
         size = s.object.diameter_m
-        assert 0.06 <= size <= 0.18 if s.object.family == "sphere" else 0.04 <= size <= 0.12
+        round_ = s.object.family in ("sphere", "ellipsoid")
+        assert 0.06 <= size <= 0.18 if round_ else 0.04 <= size <= 0.12
     families = {s.object.family for s in scenarios}
     turned = [abs(s.mount.yaw_offset_deg) > 90 for s in scenarios]
-    assert families == {"sphere", "cylinder"} and any(turned) and not all(turned)
+    assert families == {"sphere", "cylinder", "ellipsoid", "box", "bottle"}
+    assert any(turned) and not all(turned)
 
 
 def test_reach_is_judged_from_the_arm_model_over_the_whole_swing() -> None:

@@ -5,7 +5,7 @@ Ranges (regular seas; irregular ones come with their own suite):
   0.3-0.6 m deeper than the object's rest height;
 - object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; a third of the
   spheres are ellipsoids (0.6-1.7 times as long as wide), a third of the cylinders boxes (the
-  third side 0.5-1 times the width) and another third bottles (neck 0.3-0.5 of the width, down
+  third side 0.5-1 times the width, turned any way about its axis) and another third bottles (neck 0.3-0.5 of the width, down
   at the tether seven times in ten); 25-75 % of the displaced water's mass (buoyant enough
   to keep the tether taut); rest 0.3-0.7 m up;
 - arm mount: its shoulder 0.4-0.85 m from the object's rest position, at any bearing, from 0.4 m
@@ -56,7 +56,8 @@ def draw_object(rng: np.random.Generator, shapes: np.random.Generator) -> Object
         cd, ca = 0.8, 0.6
         pick = shapes.random()
         if pick < 1 / 3:
-            family, extra = "box", {"depth_m": round(d * shapes.uniform(0.5, 1.0), 4)}
+            family, extra = "box", {"depth_m": round(d * shapes.uniform(0.5, 1.0), 4),
+                                    "turn_deg": round(shapes.uniform(-90.0, 90.0), 1)}
         elif pick < 2 / 3:
             neck = d * shapes.uniform(0.3, 0.5)
             room = length - (d - neck) / 2 - 0.02  # the body keeps at least 2 cm
