@@ -5,9 +5,9 @@ Ranges (regular seas; irregular ones come with their own suite):
   0.3-0.6 m deeper than the object's rest height;
 - object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; a third of the
   spheres are ellipsoids (0.6-1.7 times as long as wide), a third of the cylinders boxes (the
-  third side 0.5-1 times the width, turned any way about its axis) and another third bottles (neck 0.3-0.5 of the width, down
-  at the tether seven times in ten); 25-75 % of the displaced water's mass (buoyant enough
-  to keep the tether taut); rest 0.3-0.7 m up;
+  third side 0.5-1 times the width, turned any way about its axis) and another third bottles
+  (neck 0.3-0.5 of the width, down at the tether seven times in ten); 25-75 % of the
+  displaced water's mass (buoyant enough to keep the tether taut); rest 0.3-0.7 m up;
 - arm mount: its shoulder 0.4-0.85 m from the object's rest position, at any bearing, from 0.4 m
   below to 0.2 m above it, the mount turned -180..180 deg from facing it;
 - camera: 0.5-1.6 m from the object at any bearing, 0-40 deg above it, looking at it; 5-30 Hz.
