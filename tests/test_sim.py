@@ -346,3 +346,41 @@ def test_an_approval_that_overtakes_its_plan_waits_for_it(arm, T_world_base) -> 
     finally:
         sim.world.close()
         bus.close()
+
+
+def test_the_world_is_the_recordings_own_object_not_perceptions_view(arm) -> None:
+    """A generated recording says what its object is: the sim builds that (a box here), and
+    neither perception's fitted shape nor its mesh reshape it."""
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.schemas import ObjectMesh, ObjectObservation, PlayerStatus
+    from wavegrasp.schemas.mesh_codec import encode_mesh
+    from wavegrasp.sim.main import SimService, SimSettings
+    from wavegrasp.wavetank.scenario import ObjectModel, paper_scenario
+
+    box = ObjectModel(family="box", diameter_m=0.08, depth_m=0.05, length_m=0.15, mass_kg=0.2)
+    meta = {"scenario": paper_scenario(2, "buoy", object=box).model_dump_json()}
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim"), bus=bus)
+    try:
+        status = PlayerStatus(header={"seq": 0, "stamp_ns": 0}, state="playing",
+                              recording="r.mcap", pace="lockstep", metadata=meta)
+        sim.on_player_status(status, None)
+        assert sim.shape is not None and sim.shape.shape == "box"
+        v = sim.shape.vertices
+        assert v is not None and np.ptp(v, axis=0) == pytest.approx([0.08, 0.05, 0.15])
+        assert sim.shape.tether_offset_m == pytest.approx(0.075)
+        sim.on_observation(ObjectObservation(
+            header={"seq": 1, "stamp_ns": 1}, centroid={"x": 0, "y": 0, "z": 0.5},
+            points_used=100, quality=1.0, sigma_m=0.001, shape="cylinder", radius_m=0.05,
+            length_m=0.1), None)
+        sim.on_mesh(ObjectMesh(header={"seq": 1, "stamp_ns": 1}, shape="cylinder",
+                               volume_m3=3e-4, frames=10, **encode_mesh(
+                                   cylinder_vertices(0.05, 0.1), np.array([[0, 1, 2]]))), None)
+        assert sim.shape.shape == "box" and sim._mesh is None
+        with pytest.raises(ValueError, match="metadata.scenario.object"):
+            sim._truth_shape = False
+            sim.on_player_status(status.model_copy(update={"metadata": {
+                "scenario": '{"object": {"family": "cube"}}'}}), None)
+    finally:
+        bus.close()

@@ -1,9 +1,11 @@
 """``wavegrasp sim``: PyBullet executes approved plans on the recording's clock.
 
 The arm (ours, or ``WAVEGRASP_ARM_URDF``) stands on its mount from ``tf_static``; the object,
-a sphere or a cylinder of the size perception reports until perception's mesh arrives
-(applied between attempts), on its tether to the seabed, follows ``groundtruth/object`` (or,
-in a recording without ground truth, the tracked centroid) through a bounded-force drive.
+the recording's own where its metadata holds its scenario (a generated recording: the sim
+stands in for the world), else a sphere or a cylinder of the size perception reports until
+perception's mesh arrives (applied between attempts), on its tether to the seabed, follows
+``groundtruth/object`` (or, in a recording without ground truth, the tracked centroid)
+through a bounded-force drive.
 A ``go`` from the gate starts the plan; the jaw closes at the grasp time; the grasp is
 judged physically (:mod:`wavegrasp.sim.executor`) and published on ``wavegrasp/sim/outcome``
 with the next camera frame's acknowledgement; the arm returns to standby and the pipeline
@@ -14,6 +16,7 @@ tries again, up to ``attempts`` per trial.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -40,10 +43,13 @@ from wavegrasp.schemas import (
     MotionPrediction,
     ObjectMesh,
     ObjectObservation,
+    PlayerStatus,
 )
 from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
+from wavegrasp.wavetank.camera import object_mesh
+from wavegrasp.wavetank.scenario import ObjectModel
 
 log = logging.getLogger("wavegrasp.sim")
 OUTCOME_KEY = "wavegrasp/sim/outcome"
@@ -85,6 +91,7 @@ class SimService(Service):
         self.cfg = settings
         self.tf = StaticTransforms()
         self.shape: ObjectShape | None = None
+        self._truth_shape = False  # the shape is the recording's own object
         self.world: SimWorld | None = None
         self.executor: Executor | None = None
         self.plans: dict[str, GraspPlan] = {}
@@ -115,6 +122,7 @@ class SimService(Service):
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/planner/standby", self.on_standby, ArmStandby)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+        self.bus.subscribe("wavegrasp/player/status", self.on_player_status, PlayerStatus)
 
     def resume(self, state: dict | None) -> None:
         """Go on with the trials of a sim that crashed; an attempt it was executing failed."""
@@ -182,6 +190,21 @@ class SimService(Service):
             self.drop_waiting_go()
             self.release_frames()
 
+    def on_player_status(self, msg: PlayerStatus, _d: Delivery) -> None:
+        """The world's own object, from a generated recording's scenario (the sim stands in
+        for the world; nothing upstream of it sees this)."""
+        if self._truth_shape or self.world is not None or "scenario" not in msg.metadata:
+            return
+        try:
+            obj = ObjectModel(**json.loads(msg.metadata["scenario"])["object"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"metadata.scenario.object: {exc}") from None
+        spec = obj.spec()
+        self.shape = ObjectShape(spec.shape, spec.radius, spec.length,
+                                 vertices=object_mesh(spec).vertex.positions.numpy(),
+                                 tether_m=spec.attach_offset)
+        self._truth_shape = True
+
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.shape is None and msg.radius_m is not None and msg.shape is not None:
             length = msg.length_m or 2 * msg.radius_m
@@ -199,7 +222,8 @@ class SimService(Service):
         vertices, _triangles = decode_mesh(msg.model_dump())
         if len(vertices) < 4:
             raise ValueError(f"mesh of {len(vertices)} vertices: a closed mesh needs 4")
-        self._mesh = vertices
+        if not self._truth_shape:  # the world's own object is not reshaped by a view of it
+            self._mesh = vertices
 
     def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
         """Kept a while: an attempt is judged against the prediction its plan came from."""

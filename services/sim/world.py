@@ -7,7 +7,8 @@ Gravity is off: underwater, the arm's buoyancy and its controllers hold it, and 
 carried along its recorded path by a constraint whose force is bounded (``drive_force_n``), so
 a gripper that hits it pushes it aside as the water would let it.
 
-The object starts as the sphere or cylinder perception fitted and becomes perception's mesh
+The object is the recording's own (its scenario's shape, as a convex hull) where the recording
+says; else it starts as the sphere or cylinder perception fitted and becomes perception's mesh
 (its convex hull) once one arrives. Its tether runs straight from its lower end (along its
 −z) to an anchor on the seabed, fixed where that line met the seabed when the scene was
 built; the tether is a thin line that pushes nothing, but an arm link touching it is
@@ -16,7 +17,7 @@ recorded (:meth:`SimWorld.tether_touches`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pybullet as pb
@@ -30,16 +31,23 @@ TETHER_RADIUS_M = 0.003
 
 @dataclass(frozen=True)
 class ObjectShape:
-    """``shape`` 'sphere' or 'cylinder' (along the object's z); radius and length, metres."""
+    """``shape`` 'sphere' or another (a cylinder along the object's z, unless ``vertices``);
+    radius and length, metres. ``vertices`` : array, shape (v, 3), metres, frame object
+    (origin at the volume centroid): the object is their convex hull. ``tether_m``: from the
+    centroid to the tether's attachment (default: half the length, a sphere's radius)."""
 
     shape: str
     radius_m: float
     length_m: float
     mass_kg: float = 0.15
+    vertices: np.ndarray | None = field(default=None, compare=False)
+    tether_m: float | None = None
 
     @property
     def tether_offset_m(self) -> float:
         """From the centroid to the tether's attachment, along the object's −z."""
+        if self.tether_m is not None:
+            return self.tether_m
         return self.radius_m if self.shape == "sphere" else self.length_m / 2
 
 
@@ -74,7 +82,10 @@ class SimWorld:
                         for i in self.joints + self.fingers]
         floor = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
         self.seabed = pb.createMultiBody(0.0, floor, physicsClientId=c)
-        if obj.shape == "sphere":
+        if obj.vertices is not None:
+            shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=np.asarray(
+                obj.vertices, dtype=float).tolist(), physicsClientId=c)
+        elif obj.shape == "sphere":
             shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=obj.radius_m,
                                             physicsClientId=c)
         else:
