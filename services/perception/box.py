@@ -20,7 +20,13 @@ from wavegrasp.perception.fit import MIN_THRESHOLD, ShapeFit, check_points, chec
 FACE_MIN_POINTS = 12  # a face needs this many points (and 3 % of the object's) to count
 SQUARE = 0.25  # |cos| between two faces' normals above this: not two faces of one box
 EDGE_ROWS = 0.5  # see _edge_gap
+FLAT = 0.85  # the fraction of the points on one face that makes a face-on view
 TRIM = 0.005  # the fraction of points left out at each end of an extent (edge noise)
+
+
+class FaceOn(ValueError):
+    """One flat face holds nearly all the points: the depth behind it cannot be seen, and a
+    sphere or cylinder would fit the face (a plane is a cylinder of infinite radius)."""
 
 
 def _faces(p: np.ndarray, viewpoint: np.ndarray) -> list[tuple[np.ndarray, float, np.ndarray]]:
@@ -122,7 +128,9 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
     size = seen_size if prior is None or prior.size is None else prior.size
     for k, (pos, sign, v) in face_at.items():
         if prior is None and not whole[k]:
-            raise ValueError("a box seen face-on only: its depth is hidden")
+            if len(faces[0][2]) >= FLAT * len(p):
+                raise FaceOn("a box seen face-on: its depth is hidden")
+            raise ValueError("one face of a box, or no box")
         centre_e[k], var[k] = pos - sign * size[k] / 2, v
     on_face = np.concatenate([f[2] for f in faces])
     centre = E @ centre_e

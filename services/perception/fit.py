@@ -268,7 +268,7 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
     better than the sphere (measured: 4-7 times worse); ties go to the simpler sphere.
     """
     # box.py and revolution.py build on this module.
-    from wavegrasp.perception.box import fit_box
+    from wavegrasp.perception.box import FaceOn, fit_box
     from wavegrasp.perception.revolution import fit_revolution
 
     if prior is not None:
@@ -284,6 +284,8 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
     for fit in (fit_box, fit_revolution):
         try:
             other = fit(points, viewpoint)
+        except FaceOn:
+            raise
         except ValueError:
             continue
         if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
