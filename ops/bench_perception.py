@@ -13,6 +13,7 @@ first use.
 from __future__ import annotations
 
 import argparse
+import re
 
 import numpy as np
 
@@ -70,7 +71,8 @@ FAMILIES = [
 
 def family_scenario(label: str, wave: int, obj: dict, seconds: float, seed: int) -> Scenario:
     """The paper's tank (Table I's ``wave``) with another object and the 30 k-point camera."""
-    return paper_scenario(wave, "buoy", name=f"family-w{wave}-{label.split(',')[0]}",
+    slug = re.sub(r"[^a-z0-9.]+", "-", label.lower()).strip("-")
+    return paper_scenario(wave, "buoy", name=f"family-w{wave}-{slug}",
                           object=ObjectModel(name=label.split(" ")[0], **obj),
                           seconds=seconds, seed=seed, camera=CameraSpec(**CAMERA_30K))
 

@@ -126,6 +126,11 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
         else:  # both faces hidden: between the two edges
             seen_size[k], centre_e[k], var[k] = hi - lo + 2 * gap, (lo + hi) / 2, gap**2
     size = seen_size if prior is None or prior.size is None else prior.size
+    for k in range(3):
+        if whole[k] and k not in face_at and seen_size[k] < size[k]:
+            # Part of both edges' run is hidden (a dropout, the frame's edge): the centre could
+            # lie anywhere along what is missing.
+            var[k] += ((size[k] - seen_size[k]) / 2) ** 2
     for k, (pos, sign, v) in face_at.items():
         if prior is None and not whole[k]:
             if len(faces[0][2]) >= FLAT * len(p):

@@ -123,6 +123,9 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     outline = np.concatenate([[med[used[0]]], med[used], [med[used[-1]]]])
     _, hc = solid_of_revolution(z, outline)
     centre = c + (z[0] + hc) * a
+    if np.linalg.norm(centre - m) > np.ptp(p, axis=0).max():
+        raise ValueError("the outline's centre falls outside the object (no solid of "
+                         "revolution fits)")
     rms = float(np.sqrt(np.mean(r**2)))
     if prior is not None and (abs(z[-1] - z[0] - prior.length) > max(
             SLICE_M * 2, 0.1 * prior.length) or rms > 1.5 * prior.rms):
