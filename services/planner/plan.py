@@ -123,6 +123,9 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         if tried == cfg.max_times:
             break
         p_f, d = path.at(t_g), motion_direction(path, t_g)
+        if np.linalg.norm(p_f - shoulder) > arm.reach_m:  # no orientation reaches it: no IK
+            rejected["out of reach"] += 1
+            continue
         outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
         # The paper's side approach from above the object and the arm's side of it first.
         towards = [0.0, 0.0, 1.0] - 0.5 * outwards
