@@ -200,9 +200,11 @@ class SimService(Service):
         except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"metadata.scenario.object: {exc}") from None
         spec = obj.spec()
-        # A copy: a view would keep open3d's buffer alive to the end, and open3d then ends
-        # the process with exit code 1 over the "leak".
-        vertices = np.array(object_mesh(spec).vertex.positions.numpy(), dtype=float)
+        # A sphere or cylinder is PyBullet's own (exact, and quicker to collide); another
+        # shape, its mesh's hull. A copy: a view would keep open3d's buffer alive to the end,
+        # and open3d then ends the process with exit code 1 over the "leak".
+        vertices = None if spec.shape in ("sphere", "cylinder") else np.array(
+            object_mesh(spec).vertex.positions.numpy(), dtype=float)
         self.shape = ObjectShape(spec.shape, spec.radius, spec.length, vertices=vertices,
                                  tether_m=spec.attach_offset)
         self._truth_shape = True
