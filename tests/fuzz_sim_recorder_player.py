@@ -25,6 +25,7 @@ from wavegrasp.schemas import (
     JointSample,
     ObjectMesh,
     ObjectObservation,
+    PlayerStatus,
     Vec3,
     model_for_key,
 )
@@ -102,6 +103,9 @@ class SimScenario(Scenario):
             return message_case("valid", example_plan("stored", t))
         if key == "wavegrasp/planner/standby":
             return message_case("valid", self.standby(t))
+        if key == "wavegrasp/player/status":  # the scene is built: its object stays
+            return message_case("valid", EXAMPLES[PlayerStatus]().model_copy(
+                update={"header": header(t), "metadata": {"scenario": '{"object": 1}'}}))
         if key == "wavegrasp/gate/decision":
             return message_case("valid", GateDecision(header=header(t), plan_id="stored",
                                                       go=False, mean_error_m=None,
