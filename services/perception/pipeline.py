@@ -5,8 +5,9 @@ snow and the thin tether removed by surface density, clustered, and the most obj
 cluster taken. Tracking: only points near where the track predicts the object are looked at,
 which keeps the hot path to a few hundred points; the cluster nearest the prediction is the
 object (continuity, not the biggest blob). The centroid comes from fitting the object's shape
-(sphere or cylinder), learnt over the first frames and then held fixed, so the camera's
-one-sided view does not pull it towards the camera.
+(sphere, cylinder, box or another solid of revolution: fit.py, box.py, revolution.py), learnt
+over the first frames and then held fixed, so the camera's one-sided view does not pull it
+towards the camera.
 """
 
 from __future__ import annotations
