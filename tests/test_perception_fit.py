@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_shape, fit_sphere
+from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_sphere
+from wavegrasp.perception.shape import fit_shape
 
 NOISE = 0.0015  # metres, depth noise at 1 m, along the ray
 N_POSES = 50

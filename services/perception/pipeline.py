@@ -19,7 +19,8 @@ import open3d as o3d
 from pydantic import BaseModel, Field
 from scipy.spatial import cKDTree
 
-from wavegrasp.perception.fit import ShapeFit, check_points, fit_shape
+from wavegrasp.perception.fit import ShapeFit, check_points
+from wavegrasp.perception.shape import fit_shape
 
 
 class PerceptionConfig(BaseModel):

@@ -1,0 +1,54 @@
+"""Which shape the object is: the sphere, cylinder, box and solid-of-revolution fits compared
+while the shape is learnt, and the learnt one used after."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wavegrasp.perception.box import FaceOn, fit_box
+from wavegrasp.perception.fit import ShapeFit, fit_cylinder, fit_sphere
+from wavegrasp.perception.revolution import fit_revolution
+
+BOX_EXPLAINED = 0.8  # fit_shape: a box's faces must hold this fraction of the points
+EXPLAINED_MORE = 0.05  # fit_shape: or a free outline explains this many more of the points
+SHAPE_RMS_RATIO = 0.7  # fit_shape: the cylinder must beat the sphere's RMS by this factor
+
+
+def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = None) -> ShapeFit:
+    """Fit the object: with `prior`, its shape with its sizes fixed; else choose.
+
+    A box (box.py) wins when its faces hold BOX_EXPLAINED of the points, every extent is seen
+    and its RMS is lower; a free solid of revolution (revolution.py: ellipsoids, bottles with
+    a neck) when its RMS beats the sphere's or cylinder's by SHAPE_RMS_RATIO or it explains
+    EXPLAINED_MORE more of the points (a cylinder fit leaves a neck out as outliers).
+
+    Else both are fitted with free sizes and the sphere wins unless the cylinder's RMS is below
+    SHAPE_RMS_RATIO times the sphere's: a sphere fitted to a cylinder leaves residuals of several
+    millimetres (the wall is straight along the axis), a cylinder fitted to a sphere does no
+    better than the sphere (measured: 4-7 times worse); ties go to the simpler sphere.
+    """
+    if prior is not None:
+        if prior.shape == "sphere":
+            return fit_sphere(points, viewpoint, prior.radius)
+        if prior.shape == "box":
+            return fit_box(points, viewpoint, prior)
+        if prior.shape == "revolution":
+            return fit_revolution(points, viewpoint, prior)
+        return fit_cylinder(points, viewpoint, prior.radius, prior.length, prior.axis)
+    sphere, cylinder = fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint)
+    best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
+    for fit in (fit_box, fit_revolution):
+        try:
+            other = fit(points, viewpoint)
+        except FaceOn:
+            raise
+        except ValueError:
+            continue
+        if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
+                other.whole) or other.rms >= best.rms):
+            continue
+        if other.shape == "revolution" and other.rms >= SHAPE_RMS_RATIO * best.rms and (
+                other.inliers.mean() < best.inliers.mean() + EXPLAINED_MORE):
+            continue
+        best = other
+    return best
