@@ -85,7 +85,11 @@ def suite(seed: int, count: int) -> int:
         body = (o.diameter_m / 2, (o.length_m or o.diameter_m) / 2,
                 None if o.family == "sphere" else np.array([0.0, 0.0, 1.0]))
         r = score(run_perception(cached_recording(s)), T, body)
-        rates.append(r.plans / max(r.attempts, 1))
+        if not r.attempts:  # perception's centroids never warmed the predictor
+            print(f"| {s.name} | {o.family} | | no warm prediction | | | |", flush=True)
+            rates.append(0.0)
+            continue
+        rates.append(r.plans / r.attempts)
         top = ", ".join(f"{k} {n}" for k, n in r.rejected.most_common(2))
         print(f"| {s.name} | {o.family} {o.diameter_m * 100:.1f} cm "
               f"| {np.linalg.norm(s.shoulder() - s.rest):.2f} | {rates[-1]:.1%} "

@@ -21,7 +21,7 @@ from wavegrasp.planner.approach import (
 from wavegrasp.planner.collision import clearance, extent, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
-from wavegrasp.planner.timing import Limits, spline_path
+from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 
@@ -253,3 +253,32 @@ def test_the_approach_spline_is_timed_leg_by_leg_within_limits(arm: ArmModel) ->
                   for k, lim in ((1, limits.velocity), (2, limits.acceleration),
                                  (3, limits.jerk)))
     assert path.duration < 0.9 * stretch
+
+
+def test_the_least_duration_bounds_every_timed_move_from_below(arm: ArmModel) -> None:
+    """The planner rules out a candidate on this bound before timing its spline, so it must
+    never exceed the spline's or ruckig's own duration (else a feasible grasp is lost)."""
+    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+    rng = np.random.default_rng(3)
+    zero = np.zeros(6)
+    for scale in (0.02, 0.3, 2.0):
+        for _ in range(20):
+            qs = np.cumsum(rng.normal(0.0, scale, (5, 6)), axis=0)
+            bound = least_duration(qs, limits)
+            assert 0.0 < bound <= spline_path(qs, limits).duration
+            assert least_duration(qs[[0, -1]], limits) <= segment(
+                qs[0], zero, zero, qs[-1], zero, limits).duration + 1e-9
+
+
+def test_a_prediction_too_uncertain_to_grasp_on_is_not_planned(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:
+    """Where the predictor's own 1σ exceeds half the jaw's opening at every time it could
+    grasp, no candidate is tried (a constant-velocity guess a second ahead is off by
+    decimetres); the same path predicted well is planned."""
+    good = prediction(10.0)
+    unsure = PredictedPath(good.times_s, good.positions, np.full(31, 0.6 * arm.jaw_max_opening_m),
+                           good.period_s)
+    result = plan_grasp(unsure, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
+    assert isinstance(result, Counter) and set(result) == {"prediction too uncertain"}
+    assert isinstance(plan_grasp(good, 10.0, arm, T_world_base, arm.q_home, BODY,
+                                 PlannerConfig()), Plan)

@@ -228,6 +228,8 @@ class ArmModel:
         # Lazily: the facing pose costs a forward kinematics pass, and the seed alone
         # usually converges.
         yield q_seed
+        if restarts == -1:
+            return
         if target is not None:
             yield self.facing(target)
         yield self.q_home
@@ -259,7 +261,8 @@ class ArmModel:
         metres and angle_tol_deg degrees of T_target (array, shape (4, 4), frame base_link),
         or None if unreachable. Tries q_seed (array, shape (n,), radians) first, then the
         home pose turned to face the target (:meth:`facing`), the home pose and fixed restarts
-        (all, or the first ``restarts``; max_iter iterations each); deterministic."""
+        (all, or the first ``restarts``; -1: q_seed alone; max_iter iterations each);
+        deterministic."""
         T_target = check_transform("T_target", T_target)
         q_seed = np.clip(check_vector("q_seed", q_seed, len(self.joint_names)),
                          self.lower, self.upper)

@@ -55,8 +55,9 @@ class PredictedPath:
 
 
 def grasp_times(path: PredictedPath, earliest_s: float, rule: str,
-                timing_s: float = 0.1) -> list[float]:
-    """Candidate grasp times, best first.
+                timing_s: float = 0.1, max_sigma_m: float = np.inf) -> list[float]:
+    """Candidate grasp times, best first; none where the prediction's own 1σ exceeds
+    ``max_sigma_m``.
 
     ``period``: one period ahead, as the paper (Δt = T), or whole periods later when the arm
     needs longer, each then followed by the samples nearest it. ``slowest``: the samples at or
@@ -65,7 +66,7 @@ def grasp_times(path: PredictedPath, earliest_s: float, rule: str,
     object forgives timing errors, and a nearer time is predicted better.
     """
     t0 = path.times_s[0]
-    usable = path.times_s[path.times_s >= earliest_s]
+    usable = path.times_s[(path.times_s >= earliest_s) & (path.sigma <= max_sigma_m)]
     if not len(usable):
         return []
     if rule == "period":

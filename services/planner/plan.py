@@ -32,6 +32,7 @@ from wavegrasp.planner.approach import (
 from wavegrasp.planner.collision import Body, clearance, collides, extent, hand_hits
 from wavegrasp.planner.timing import (
     Limits,
+    least_duration,
     sample_path,
     sample_segment,
     segment,
@@ -70,8 +71,12 @@ class PlannerConfig(BaseModel):
                                       "neighbouring waypoints of the approach")
     standby_tolerance_rad: float = Field(0.3, description="an idle arm this near its standby "
                                          "(every joint) is not moved there before a plan")
+    max_sigma_m: float | None = Field(None, description="grasp times at which the "
+                                      "prediction's own 1σ exceeds this are not tried (None: "
+                                      "half the jaw's widest opening: the object would as "
+                                      "likely be outside the open jaw as inside it)")
     ik_max_iter: int = 40
-    ik_restarts: int = 2
+    ik_restarts: int = 0
 
 
 @dataclass
@@ -117,7 +122,12 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     shoulder = T_world_base[:3, :3] @ arm.shoulder + base_world
     need, tried = 0.0, 0
     candidates: list[np.ndarray] = []
-    for t_g in grasp_times(path, earliest, cfg.grasp_time):
+    max_sigma = cfg.max_sigma_m if cfg.max_sigma_m is not None else arm.jaw_max_opening_m / 2
+    times = grasp_times(path, earliest, cfg.grasp_time, max_sigma_m=max_sigma)
+    if not times and (path.times_s >= earliest).any():
+        rejected["prediction too uncertain"] += 1
+        return rejected
+    for t_g in times:
         if t_g < start + need:
             continue
         if tried == cfg.max_times:
@@ -274,10 +284,12 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
         return "approach unreachable", np.inf
     # Stage at P_init (ruckig, time-optimal), wait there, then the paper's cubic spline
     # through the waypoints, timed to end at P_f exactly at the grasp time.
-    approach = spline_path(qs, limits)
     pre = segment(q_now, np.zeros(6), np.zeros(6), qs[0], np.zeros(6), limits)
     if pre is None:
         return "cannot be timed", np.inf
+    if t_start + pre.duration + least_duration(qs, limits) > t_g:  # before timing the spline
+        return "cannot be timed", pre.duration + least_duration(qs, limits)
+    approach = spline_path(qs, limits)
     d_path = approach.duration
     if t_start + pre.duration + d_path > t_g:
         return "cannot be timed", pre.duration + d_path
@@ -326,8 +338,9 @@ def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.n
         if prefix not in solved:
             T = T_base_grasp.copy()
             T[:3, 3] = (T_base_world @ np.append(p, 1.0))[:3]
-            solved[prefix] = arm.inverse(T, seed, max_iter=cfg.ik_max_iter,
-                                         restarts=cfg.ik_restarts)
+            # From the neighbour alone: a solution from another seed would be on another
+            # branch, refused below anyway (on the tank every waypoint solved came from it).
+            solved[prefix] = arm.inverse(T, seed, max_iter=cfg.ik_max_iter, restarts=-1)
         q = solved[prefix]
         # Waypoints a few centimetres apart need no joint to swing far: one that does has
         # jumped to another branch of the arm's solutions, a detour, not the approach.
