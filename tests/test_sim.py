@@ -202,6 +202,44 @@ def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_
         bus.close()
 
 
+def test_a_warm_prediction_begins_the_trials_though_no_plan_ever_comes(arm, T_world_base
+                                                                        ) -> None:
+    """A predictor too unsure to be planned on gives the gate nothing to decide: its trials
+    still begin at the first warm prediction and end, failed, after the timeout."""
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+    from wavegrasp.schemas import Header, MotionPrediction, PredictionSample
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    def prediction(warm: bool) -> MotionPrediction:
+        return MotionPrediction(
+            header=Header(seq=1, stamp_ns=10**9), model="linear",
+            period_s=1.5, warm=warm, samples=[PredictionSample(
+                t_ns=10**9 + k * 10**8, x=0.0, y=0.0, z=0.5, sigma=0.2) for k in range(3)])
+
+    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
+    sim = SimService(SimSettings(service="sim", trials=2, attempts=3, trial_timeout_s=5.0,
+                                 stop_after_trials=True), bus=bus)
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.executor = Executor(sim.world)
+        sim.on_prediction(prediction(warm=False), None)
+        sim.finish_frame(1)
+        sim.world.time_s += 20.0
+        sim.finish_frame(2)  # still warming up: no trial has begun, none can time out
+        assert sim.trial == 0 and not sim.counters["trials ended waiting for a plan"]
+        sim.on_prediction(prediction(warm=True), None)
+        sim.finish_frame(3)  # trial 0 begins
+        for k in range(2):
+            sim.world.time_s += 5.0
+            sim.finish_frame(4 + k)
+        assert sim.counters["trials ended waiting for a plan"] == 2
+        assert sim.trial == 2 and sim.stopping.is_set()
+    finally:
+        sim.world.close()
+        bus.close()
+
+
 def test_the_service_reshapes_the_object_only_between_attempts(arm, T_world_base) -> None:
     import pybullet as pb
 

@@ -108,7 +108,7 @@ class SimService(Service):
         self._go: Attempt | None = None  # approved this frame, not started yet
         self._standby: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # asked for
         self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
-        self._plans_flow = False  # a decision has come: the trials can begin
+        self._plans_flow = False  # a warm prediction or a decision has come: trials begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.state = StateFile(settings.resume_file)
         self._saved: dict | None = None
@@ -230,7 +230,10 @@ class SimService(Service):
             self._mesh = vertices
 
     def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
-        """Kept a while: an attempt is judged against the prediction its plan came from."""
+        """Kept a while: an attempt is judged against the prediction its plan came from. The
+        first warm one begins trial 0: from then on the planner may plan, and a predictor
+        too unsure for it to plan on must fail its trials, not leave them unbegun."""
+        self._plans_flow = self._plans_flow or msg.warm
         if len(msg.samples) >= 2:
             self.predictions[msg.header.seq] = (
                 np.array([x.t_ns for x in msg.samples]) * 1e-9,
