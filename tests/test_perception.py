@@ -97,3 +97,27 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         assert bus.bad["trisect/points"] == 3 and bus.bad["tf_static"] == 1
     finally:
         bus.close()
+
+
+def test_the_mesh_is_rebuilt_as_its_views_double_and_at_least_every_max_period() -> None:
+    """The first mesh after 10 frames (1 s at 10 Hz), then one each time the frames in it
+    have doubled, and at least one every 20 s once that is longer."""
+    bus = Bus(Settings(service="perception", zenoh_mode="peer", zenoh_connect=[],
+                       zenoh_listen=[]))
+    try:
+        service = PerceptionService(PerceptionSettings(service="perception"), bus=bus)
+        starts = []
+        rng = np.random.default_rng(0)
+        ball = rng.normal(size=(400, 3))
+        ball = 0.05 * ball / np.linalg.norm(ball, axis=1, keepdims=True)
+        for frame in range(1, 701):
+            service.accumulator.add(ball, np.zeros(3), np.eye(3))
+            before = service._mesh_job
+            service.start_mesh_if_due()
+            if service._mesh_job is not before:
+                starts.append(frame)
+                service._mesh_job.result()
+                service._mesh_job = None
+        assert starts == [10, 30, 60, 120, 240, 440, 640]
+    finally:
+        bus.close()

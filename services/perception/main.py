@@ -3,8 +3,9 @@
 Publishes one ``wavegrasp/perception/object`` per camera frame: the volume centroid in
 ``world`` with its uncertainty, or no centroid and the reason (empty cloud, unknown frame, no
 object...); with a centroid, also the object's points on ``wavegrasp/perception/points``.
-Every ``mesh_period_s`` of frames it rebuilds the object's closed mesh from the points of all
-frames so far, on a worker thread off the per-frame path, and publishes it on
+Whenever the frames it has seen have doubled (every ``mesh_period_s`` to
+``mesh_max_period_s``), it rebuilds the object's closed mesh from the points of all frames so
+far, on a worker thread off the per-frame path, and publishes it on
 ``wavegrasp/perception/mesh``; the frames' acknowledgements wait for that mesh, so in a
 lockstep run everyone downstream gets it at the same frame every time. It never reads the
 ground truth.
@@ -45,7 +46,12 @@ MESH_KEY = "wavegrasp/perception/mesh"
 
 
 class PerceptionSettings(Settings):
-    mesh_period_s: float = 2.0
+    mesh_period_s: float = Field(2.0, description="the least between rebuilds (counted in "
+                                 "frames at 10 Hz)")
+    mesh_max_period_s: float = Field(20.0, description="later rebuilds wait as many frames "
+                                     "as the mesh already holds, up to this: each then adds "
+                                     "as many views again, at a fraction of the CPU (a "
+                                     "rebuild every 2 s was a third of the service's)")
     mesh_min_frames: int = 10
     worker_cpus: str = Field("", description="CPUs of the mesh worker thread (a Linux CPU "
                              "list); empty: the service's own")
@@ -194,12 +200,14 @@ class PerceptionService(Service):
             radius_m=fit.radius, length_m=fit.length, fit_rms_m=fit.rms))
 
     def start_mesh_if_due(self) -> None:
-        """Rebuild the mesh on the worker after every ``mesh_period_s`` of frames (from the
-        frame count, not the wall clock, so a lockstep run builds the same meshes)."""
+        """Rebuild the mesh on the worker once the frames in it have doubled, at least every
+        ``mesh_max_period_s`` and at most every ``mesh_period_s`` (from the frame count, not
+        the wall clock, so a lockstep run builds the same meshes)."""
         if self._mesh_job is not None or self.accumulator.frames < self._next_mesh_frame:
             return
-        self._next_mesh_frame = self.accumulator.frames + int(10 * self.cfg.mesh_period_s)
         acc = self.accumulator
+        wait = min(acc.frames, int(10 * self.cfg.mesh_max_period_s))
+        self._next_mesh_frame = acc.frames + max(int(10 * self.cfg.mesh_period_s), wait)
         points, weights, frames = acc.points_object(), acc.counts(), acc.frames
         self._mesh_job = self._executor.submit(
             lambda: (*build_mesh(points, weights=weights), frames))
