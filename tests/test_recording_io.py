@@ -189,3 +189,35 @@ def test_decode_points_reads_every_field_layout(layout: str) -> None:
     np.testing.assert_array_equal(cloud.points, xyz[finite])
     assert cloud.dropped_nonfinite == 2 and cloud.frame_id == "cam"
     assert cloud.stamp_ns == 5_000_000_007
+
+
+def test_a_pose_decodes_to_its_quaternion_as_sent_and_a_bad_one_is_named() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from wavegrasp.recording_io.ros_msgs import decode_pose, decode_pose_quaternion
+
+    t = ros2_typestore().types
+
+    def pose(q: list[float], p: list[float]) -> bytes:
+        msg = t["geometry_msgs/msg/PoseStamped"](
+            header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+                sec=3, nanosec=5), frame_id="world"),
+            pose=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
+                orientation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+        return bytes(ros2_typestore().serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+
+    q = Rotation.from_euler("xyz", [0.3, -0.2, 1.1]).as_quat()
+    cdr = pose(list(q), [0.1, -0.2, 0.5])
+    position, quat, stamp = decode_pose_quaternion(cdr)
+    T, _, stamp_m = decode_pose(cdr)
+    assert stamp == stamp_m == 3_000_000_005
+    np.testing.assert_allclose(quat, q)
+    np.testing.assert_allclose(position, T[:3, 3])
+    np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), T[:3, :3], atol=1e-12)
+    with pytest.raises(ValueError, match="not a unit quaternion"):
+        decode_pose_quaternion(pose([0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        decode_pose_quaternion(pose([0.0, 0.0, 0.0, 1.0], [float("nan"), 0.0, 0.0]))
+    with pytest.raises(ValueError, match="not a valid geometry_msgs/msg/PoseStamped"):
+        decode_pose_quaternion(b"\x00\x01 not a pose")

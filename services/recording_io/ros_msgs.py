@@ -134,13 +134,18 @@ def encode_organized_points(image: np.ndarray, height: int, width: int, stamp_ns
     return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
 
 
-def transform_matrix(translation, rotation) -> np.ndarray:
-    """4x4 pose from a geometry_msgs translation/position and quaternion."""
-    T = np.eye(4)
+def _unit_quaternion(rotation) -> np.ndarray:
+    """(x, y, z, w) of a geometry_msgs quaternion; ValueError unless finite and unit."""
     q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=float)
     if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1) > 1e-3:
         raise ValueError(f"quaternion {q} is not a unit quaternion")
-    T[:3, :3] = Rotation.from_quat(q).as_matrix()
+    return q
+
+
+def transform_matrix(translation, rotation) -> np.ndarray:
+    """4x4 pose from a geometry_msgs translation/position and quaternion."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(_unit_quaternion(rotation)).as_matrix()
     T[:3, 3] = [translation.x, translation.y, translation.z]
     if not np.isfinite(T).all():
         raise ValueError("transform has NaN or inf")
@@ -160,6 +165,18 @@ def decode_pose(cdr: bytes) -> tuple[np.ndarray, str, int]:
     msg = _deserialize(cdr, "geometry_msgs/msg/PoseStamped")
     return (transform_matrix(msg.pose.position, msg.pose.orientation), msg.header.frame_id,
             stamp_ns(msg.header))
+
+
+def decode_pose_quaternion(cdr: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+    """Position (3,), metres, unit quaternion (x, y, z, w) and stamp of a
+    ``geometry_msgs/msg/PoseStamped``, as sent: no matrix and back (the sim takes one every
+    10 ms, and scipy's round trip was a sixth of its CPU)."""
+    msg = _deserialize(cdr, "geometry_msgs/msg/PoseStamped")
+    p = msg.pose.position
+    position = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.isfinite(position).all():
+        raise ValueError("pose position has NaN or inf")
+    return position, _unit_quaternion(msg.pose.orientation), stamp_ns(msg.header)
 
 
 class StaticTransforms:

@@ -27,7 +27,7 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose, decode_tf
+from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose_quaternion, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -156,13 +156,13 @@ class SimService(Service):
             raise ValueError(f"stamp {stamp_ns} is {ahead_s:.1f} s ahead of the recording clock")
 
     def on_truth(self, d: Delivery) -> None:
-        T, _frame, stamp_ns = decode_pose(d.payload)
+        position, quat, stamp_ns = decode_pose_quaternion(d.payload)
         self.check_not_ahead(stamp_ns)
         att = CdrAttachment.decode(d.attachment)
         if att is not None:
             self._truths = max(self._truths, att.seq + 1)
         self._truth_at = stamp_ns * 1e-9
-        self.advance(stamp_ns * 1e-9, T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat())
+        self.advance(stamp_ns * 1e-9, position, quat)
         self.release_frames()
 
     def on_upstream_ack(self, msg: FrameAck, d: Delivery) -> None:
