@@ -217,7 +217,7 @@ def test_a_pose_decodes_to_its_quaternion_as_sent_and_a_bad_one_is_named() -> No
     np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), T[:3, :3], atol=1e-12)
     with pytest.raises(ValueError, match="not a unit quaternion"):
         decode_pose_quaternion(pose([0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0]))
-    with pytest.raises(ValueError, match="NaN or inf"):
+    with pytest.raises(ValueError, match="transform has NaN or inf"):
         decode_pose_quaternion(pose([0.0, 0.0, 0.0, 1.0], [float("nan"), 0.0, 0.0]))
     with pytest.raises(ValueError, match="not a valid geometry_msgs/msg/PoseStamped"):
         decode_pose_quaternion(b"\x00\x01 not a pose")

@@ -175,7 +175,7 @@ def decode_pose_quaternion(cdr: bytes) -> tuple[np.ndarray, np.ndarray, int]:
     p = msg.pose.position
     position = np.array([p.x, p.y, p.z], dtype=float)
     if not np.isfinite(position).all():
-        raise ValueError("pose position has NaN or inf")
+        raise ValueError("transform has NaN or inf")
     return position, _unit_quaternion(msg.pose.orientation), stamp_ns(msg.header)
 
 
