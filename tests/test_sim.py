@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 
 import numpy as np
@@ -169,17 +170,28 @@ def test_attempt_from_a_plan_message_names_what_is_wrong(arm) -> None:
         Attempt.from_message(msg, arm.joint_names)
 
 
-def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_base) -> None:
+@contextlib.contextmanager
+def trial_sim(arm, T_world_base, **settings):
+    """A sim service on its own bus, its world built with the can, stopping after its
+    trials."""
     from wavegrasp.runtime.bus import Bus
     from wavegrasp.runtime.settings import Settings
     from wavegrasp.sim.main import SimService, SimSettings
 
     bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
-    sim = SimService(SimSettings(service="sim", trials=3, attempts=2, trial_timeout_s=10.0,
-                                 stop_after_trials=True), bus=bus)
+    sim = SimService(SimSettings(service="sim", stop_after_trials=True, **settings), bus=bus)
     try:
         sim.world = SimWorld(arm, T_world_base, CAN)
         sim.executor = Executor(sim.world)
+        yield sim
+    finally:
+        if sim.world is not None:
+            sim.world.close()
+        bus.close()
+
+
+def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_base) -> None:
+    with trial_sim(arm, T_world_base, trials=3, attempts=2, trial_timeout_s=10.0) as sim:
         sim.world.time_s = 100.0
         sim.attempt = 1
         sim.publish_outcome(Result("a", False, "timing"))  # trial 0, attempt 1 of 2
@@ -197,19 +209,13 @@ def test_trials_end_at_a_success_after_the_last_attempt_or_waiting(arm, T_world_
         sim.check_trial_timeout()  # 10 s: trial 2 ends as a failure, and with it the run
         assert sim.trial == 3 and sim.stopping.is_set()
         assert sim.counters["trials ended waiting for a plan"] == 1
-    finally:
-        sim.world.close()
-        bus.close()
 
 
 def test_a_warm_prediction_begins_the_trials_though_no_plan_ever_comes(arm, T_world_base
                                                                         ) -> None:
     """A predictor too unsure to be planned on gives the gate nothing to decide: its trials
     still begin at the first warm prediction and end, failed, after the timeout."""
-    from wavegrasp.runtime.bus import Bus
-    from wavegrasp.runtime.settings import Settings
     from wavegrasp.schemas import Header, MotionPrediction, PredictionSample
-    from wavegrasp.sim.main import SimService, SimSettings
 
     def prediction(warm: bool) -> MotionPrediction:
         return MotionPrediction(
@@ -217,12 +223,7 @@ def test_a_warm_prediction_begins_the_trials_though_no_plan_ever_comes(arm, T_wo
             period_s=1.5, warm=warm, samples=[PredictionSample(
                 t_ns=10**9 + k * 10**8, x=0.0, y=0.0, z=0.5, sigma=0.2) for k in range(3)])
 
-    bus = Bus(Settings(service="sim", zenoh_mode="peer", zenoh_connect=[], zenoh_listen=[]))
-    sim = SimService(SimSettings(service="sim", trials=2, attempts=3, trial_timeout_s=5.0,
-                                 stop_after_trials=True), bus=bus)
-    try:
-        sim.world = SimWorld(arm, T_world_base, CAN)
-        sim.executor = Executor(sim.world)
+    with trial_sim(arm, T_world_base, trials=2, attempts=3, trial_timeout_s=5.0) as sim:
         sim.on_prediction(prediction(warm=False), None)
         sim.finish_frame(1)
         sim.world.time_s += 20.0
@@ -235,9 +236,6 @@ def test_a_warm_prediction_begins_the_trials_though_no_plan_ever_comes(arm, T_wo
             sim.finish_frame(4 + k)
         assert sim.counters["trials ended waiting for a plan"] == 2
         assert sim.trial == 2 and sim.stopping.is_set()
-    finally:
-        sim.world.close()
-        bus.close()
 
 
 def test_the_service_reshapes_the_object_only_between_attempts(arm, T_world_base) -> None:
