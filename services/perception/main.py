@@ -51,7 +51,7 @@ class PerceptionSettings(Settings):
     mesh_max_period_s: float = Field(20.0, description="later rebuilds wait as many frames "
                                      "as the mesh already holds, up to this: each then adds "
                                      "as many views again, at a fraction of the CPU (a "
-                                     "rebuild every 2 s was a third of the service's)")
+                                     "rebuild every 2 s was a fifth of the service's)")
     mesh_min_frames: int = 10
     worker_cpus: str = Field("", description="CPUs of the mesh worker thread (a Linux CPU "
                              "list); empty: the service's own")

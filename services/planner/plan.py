@@ -287,8 +287,9 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     pre = segment(q_now, np.zeros(6), np.zeros(6), qs[0], np.zeros(6), limits)
     if pre is None:
         return "cannot be timed", np.inf
-    if t_start + pre.duration + least_duration(qs, limits) > t_g:  # before timing the spline
-        return "cannot be timed", pre.duration + least_duration(qs, limits)
+    least = pre.duration + least_duration(qs, limits)
+    if t_start + least > t_g:  # before timing the spline
+        return "cannot be timed", least
     approach = spline_path(qs, limits)
     d_path = approach.duration
     if t_start + pre.duration + d_path > t_g:
