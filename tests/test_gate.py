@@ -171,7 +171,7 @@ def test_bad_input_raises_value_errors_naming_the_problem() -> None:
     pred.samples.reverse()
     with pytest.raises(ValueError, match="not strictly increasing"):
         gate.on_prediction(pred)
-    with pytest.raises(ValueError, match="without samples"):
+    with pytest.raises(ValueError, match="has 0 samples, need at least 2"):
         gate.on_prediction(MotionPrediction(header=Header(), model="m", period_s=1, samples=[]))
     with pytest.raises(ValueError, match="finite number"):  # the message refuses NaN itself
         observation(0.0, np.array([math.nan, 0, 0]))

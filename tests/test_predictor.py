@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from wavegrasp.predictor.forecast import ErrorTracker, Forecast
 from wavegrasp.predictor.harmonic import HarmonicModel
 from wavegrasp.predictor.models import LinearPredictor, make_predictor
+from wavegrasp.schemas.path import interpolate_path
 
 OMEGA = 2 * np.pi / 1.2
 
@@ -130,3 +132,42 @@ def test_a_slow_camera_still_warms_the_predictor_and_gets_a_sigma_at_every_lead(
     # A bin never measured says what its measured neighbours say, no more.
     odd = np.arange(3, len(sigma) - 1, 2)
     assert np.all(sigma[odd] <= np.maximum(sigma[odd - 1], sigma[odd + 1]) + 1e-9)
+
+
+def test_a_prediction_is_read_cubic_between_its_samples() -> None:
+    # A 0.1 m swing of period 1.25 s sampled every 0.1 s, read halfway between samples.
+    leads = np.arange(0.0, 4.05, 0.1)
+    swing = np.column_stack([0.1 * np.sin(2 * np.pi * leads / 1.25), 0 * leads, 0 * leads])
+    halfway = leads[:-1] + 0.05
+    truth = 0.1 * np.sin(2 * np.pi * halfway / 1.25)
+    linear = np.abs(np.interp(halfway, leads, swing[:, 0]) - truth).max()
+    cubic = np.abs(interpolate_path(leads, swing, halfway)[:, 0] - truth).max()
+    assert linear > 0.002 and cubic < 0.0002
+    np.testing.assert_allclose(interpolate_path(leads, swing, [-1.0, 9.0]), swing[[0, -1]])
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        interpolate_path(leads[:1], swing[:1], 0.0)
+
+
+def test_one_early_error_weighs_as_one_sample_among_many() -> None:
+    tracker = ErrorTracker(dt=0.1, n_leads=3)
+    forecast = Forecast(0.0, np.array([0.0, 0.1, 0.2]), np.zeros((3, 3)), np.full(3, np.nan), 1.0)
+    for k, error in enumerate([1.0] + [0.001] * 900):
+        tracker.keep(Forecast(k, forecast.leads, forecast.positions, forecast.sigma, 1.0))
+        tracker.observe(k + 0.1, np.array([error, 0.0, 0.0]))
+    # An average started at its first sample would still say 81 mm here.
+    assert tracker.sigma(np.array([0.1]))[0] < 0.02
+
+
+def test_sigma_measures_the_model_once_ready_not_its_warm_up() -> None:
+    model = make_predictor("blend")
+    t, p = stream(40.0, seed=3)
+    p[:, 0] += 0.15 * np.exp(-t / 2.0)  # released from aside: the first seconds mislead
+    errors, sigmas = [], []
+    for ti, pi in zip(t, p, strict=True):
+        f = model.update(ti, pi)
+        if f is not None and f.warm and f.t0 + 1.2 <= t[-1]:
+            errors.append(np.linalg.norm(f.at(f.t0 + 1.2) - motion(np.array([f.t0 + 1.2]))[0]))
+            sigmas.append(np.interp(1.2, f.leads, f.sigma))
+    rmse = np.sqrt(np.mean(np.square(errors)))
+    # Conservative (the observations' own noise is in it) but of the model's own size.
+    assert rmse <= np.median(sigmas) < 5 * rmse

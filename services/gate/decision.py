@@ -1,8 +1,9 @@
 """The gate's decision, pure logic (no zenoh): the paper's eq. 13-14 plus the safety checks.
 
 Prediction error (eq. 13): for each observation with a centroid at stamp t, e(t) = ||Ĉ(t) − C(t)||
-where Ĉ(t) is interpolated linearly between the samples of the **most recent prediction made at
-least ``match_lead_s`` before t** whose samples cover t ("made" = the prediction's
+where Ĉ(t) is read between the samples (cubic: :mod:`wavegrasp.schemas.path`) of the **most
+recent prediction made at least ``match_lead_s`` before t** whose samples cover t ("made" = the
+prediction's
 ``header.stamp_ns``, the capture time of the observation it was built from). A lead of zero
 would compare the predictor with the very observation it was fed; ``match_lead_s`` (0.2 s, two
 camera frames) makes e(t) a real forecast error while keeping it recent. The predictor's error
@@ -23,12 +24,14 @@ import bisect
 import math
 from collections import Counter
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from wavegrasp.checks import check_after
 from wavegrasp.schemas import GateDecision, GraspPlan, Header, MotionPrediction, ObjectObservation
+from wavegrasp.schemas.path import path_at, path_spline
 
 NS = 1_000_000_000
 MAX_PREDICTIONS = 1000  # kept at most; ~100 s of predictions at 10 Hz
@@ -73,6 +76,14 @@ class _Track:
     t_ns: np.ndarray
     xyz: np.ndarray
 
+    @cached_property
+    def spline(self):  # noqa: ANN201 (scipy's CubicSpline, seconds after the first sample)
+        return path_spline((self.t_ns - self.t_ns[0]) * 1e-9, self.xyz)
+
+    def at(self, t_ns: int) -> np.ndarray:
+        """Predicted position (3,), metres, at ``t_ns`` (cubic between samples)."""
+        return path_at(self.spline, (t_ns - int(self.t_ns[0])) * 1e-9)
+
 
 def time_average(t_ns: list[int], values: list[float]) -> float:
     """Trapezoid time-average of ``values`` at stamps ``t_ns`` (sorted); one sample: itself."""
@@ -112,8 +123,8 @@ class Gate:
     def on_prediction(self, pred: MotionPrediction) -> None:
         """Keep a prediction's samples. Raises ValueError if they are empty, out of order or
         not finite."""
-        if not pred.samples:
-            raise ValueError("prediction without samples")
+        if len(pred.samples) < 2:
+            raise ValueError(f"prediction has {len(pred.samples)} samples, need at least 2")
         t = np.array([s.t_ns for s in pred.samples], dtype=np.int64)
         if np.any(np.diff(t) <= 0):
             raise ValueError("prediction samples not strictly increasing in t_ns")
@@ -157,7 +168,7 @@ class Gate:
         if track is None:
             self.counts["unmatched observations"] += 1
             return None
-        predicted = np.array([np.interp(t, track.t_ns, track.xyz[:, k]) for k in range(3)])
+        predicted = track.at(t)
         error = float(np.linalg.norm(predicted - actual))
         sample = self._scored(t, error, (t - track.made_ns) / NS)
         bisect.insort(self.errors, sample, key=lambda e: e.t_ns)

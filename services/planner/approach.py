@@ -14,6 +14,7 @@ import numpy as np
 
 from wavegrasp.arm.transforms import cross
 from wavegrasp.schemas import MotionPrediction
+from wavegrasp.schemas.path import path_at, path_spline
 
 
 @dataclass(frozen=True)
@@ -40,18 +41,19 @@ class PredictedPath:
         """The median time between samples, seconds."""
         return float(np.median(np.diff(self.times_s)))
 
+    @cached_property
+    def spline(self):  # noqa: ANN201 (scipy's CubicSpline)
+        return path_spline(self.times_s, self.positions)
+
     def at(self, t: float | np.ndarray) -> np.ndarray:
-        """Position(s) at ``t`` seconds: shape (3,) for a scalar ``t``, else (k, 3)."""
-        ts = np.atleast_1d(t)
-        out = np.column_stack([np.interp(ts, self.times_s, self.positions[:, i])
-                               for i in range(3)])
-        return out[0] if np.ndim(t) == 0 else out
+        """Position(s) at ``t`` seconds (cubic between samples, see
+        :mod:`wavegrasp.schemas.path`): shape (3,) for a scalar ``t``, else (k, 3)."""
+        return path_at(self.spline, t)
 
     def velocity(self, t: float | np.ndarray) -> np.ndarray:
-        """Velocity m/s at ``t`` (central difference over one sample spacing): shape (3,) for
-        a scalar ``t``, else (k, 3)."""
-        h = self.spacing_s
-        return (self.at(t + h / 2) - self.at(t - h / 2)) / h
+        """Velocity m/s at ``t`` (the spline's derivative; zero outside the samples): shape
+        (3,) for a scalar ``t``, else (k, 3)."""
+        return path_at(self.spline, t, derivative=1)
 
 
 def grasp_times(path: PredictedPath, earliest_s: float, rule: str,

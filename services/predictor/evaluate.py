@@ -1,7 +1,7 @@
 """Predictor models against ground truth, fed the perception service's centroids.
 
-For every forecast made after ``warmup_s``, the predicted position at 0.25, 0.5 and 1 wave
-period ahead (the wave's own period, known to the benchmark, never to the models) is compared
+For every warm forecast (the ones the pipeline acts on) made after ``warmup_s``, the predicted
+position at 0.25, 0.5 and 1 wave period ahead (the wave's own period, known to the benchmark, never to the models) is compared
 with the ground truth there; coverage is the share of 1-period errors within 2 sigma.
 """
 
@@ -42,7 +42,8 @@ def score(track: Track, model: str, period_s: float, warmup_s: float = 10.0) -> 
         start = time.perf_counter()
         forecast = predictor.update(t, centre, sigma)
         times.append((time.perf_counter() - start) * 1e3)
-        if forecast is None or t < warmup_s or forecast.t0 + period_s > t_truth[-1]:
+        if (forecast is None or not forecast.warm or t < warmup_s
+                or forecast.t0 + period_s > t_truth[-1]):
             continue
         for i, frac in enumerate(FRACTIONS):
             target = forecast.t0 + frac * period_s

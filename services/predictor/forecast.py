@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from wavegrasp.schemas.path import interpolate_path, path_spline
+
 
 def check_position(p: np.ndarray) -> np.ndarray:
     """position : array, shape (3,), metres, finite; ValueError naming the problem otherwise."""
@@ -38,9 +40,9 @@ class Forecast:
     warm: bool = False
 
     def at(self, t: float) -> np.ndarray:
-        """Position at time ``t`` (linear between samples), shape (3,)."""
-        lead = t - self.t0
-        return np.array([np.interp(lead, self.leads, self.positions[:, i]) for i in range(3)])
+        """Position at time ``t`` (cubic between samples, as every reader of a prediction
+        reads it: :mod:`wavegrasp.schemas.path`), shape (3,)."""
+        return interpolate_path(self.leads, self.positions, t - self.t0)
 
 
 class ErrorTracker:
@@ -51,7 +53,9 @@ class ErrorTracker:
     exponential average for its lead bin (``dt`` wide), a fast one (``memory`` samples per bin)
     and a slow one (three times longer); sigma is the larger, so it rises as soon as errors grow
     and does not drop after a few lucky forecasts; :meth:`recent` is the fast one alone.
-    Forecasts must share the lead grid ``k * dt``, k = 0..n_leads-1.
+    Until a bin has as many samples as an average's memory, that average is the plain mean of
+    them (an exponential average started at its first sample would weigh that one sample
+    most for hundreds more). Forecasts must share the lead grid ``k * dt``, k = 0..n_leads-1.
     """
 
     def __init__(self, dt: float, n_leads: int, memory: int = 60) -> None:
@@ -64,40 +68,42 @@ class ErrorTracker:
     def reset(self) -> None:
         """Forget the kept forecasts (a restart); the measured errors stay."""
         self._t0: deque[float] = deque()
-        self._positions: deque[np.ndarray] = deque()
+        self._splines: deque[np.ndarray] = deque()
 
     def observe(self, t: float, p: np.ndarray) -> None:
         horizon = (self.n_leads - 1) * self.dt
         while self._t0 and t - self._t0[0] > horizon - 1e-9:
             self._t0.popleft()
-            self._positions.popleft()
+            self._splines.popleft()
         if not self._t0:
             return
         t0 = np.fromiter(self._t0, float)
-        pos = np.asarray(self._positions)  # (K, n_leads, 3)
+        coefs = np.asarray(self._splines)  # (K, 4, n_leads - 1, 3): cubic pieces per lead
         x = (t - t0) / self.dt
         ok = x > 1e-6
-        x, pos = x[ok], pos[ok]
+        x, coefs = x[ok], coefs[ok]
         i = np.minimum(np.floor(x).astype(int), self.n_leads - 2)
-        w = (x - i)[:, None]
-        rows = np.arange(len(i))
-        predicted = (1 - w) * pos[rows, i] + w * pos[rows, i + 1]
+        s = ((x - i) * self.dt)[:, None]
+        c = coefs[np.arange(len(i)), :, i]  # (k, 4, 3)
+        predicted = ((c[:, 0] * s + c[:, 1]) * s + c[:, 2]) * s + c[:, 3]
         err2 = np.sum((predicted - p) ** 2, axis=1)
         bins = np.round(x).astype(int)
         if len(np.unique(bins)) == len(bins):  # the usual case: one error per bin, at once
-            old = self.mse[bins]
-            self.mse[bins] = np.where(np.isnan(old[:, :1]), err2[:, None],
-                                      old + self.alphas * (err2[:, None] - old))
             self.count[bins] += 1
+            alpha = np.maximum(self.alphas, 1.0 / self.count[bins][:, None])
+            old = np.nan_to_num(self.mse[bins])
+            self.mse[bins] = old + alpha * (err2[:, None] - old)
             return
         for k, e in zip(bins, err2, strict=True):  # a bin twice: in order, as they came
-            old = self.mse[k]
-            self.mse[k] = e if np.isnan(old[0]) else old + self.alphas * (e - old)
             self.count[k] += 1
+            old = np.nan_to_num(self.mse[k])
+            self.mse[k] = old + np.maximum(self.alphas, 1.0 / self.count[k]) * (e - old)
 
     def keep(self, forecast: Forecast) -> None:
+        """Measure ``forecast`` against the observations to come, read between its samples
+        as every reader reads a prediction (cubic)."""
         self._t0.append(forecast.t0)
-        self._positions.append(forecast.positions)
+        self._splines.append(path_spline(forecast.leads, forecast.positions).c)
 
     def _bins(self, leads: np.ndarray) -> np.ndarray:
         return np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)

@@ -22,9 +22,16 @@ DEFAULT_MODEL = "blend"
 
 
 class Predictor:
-    """Bookkeeping shared by the models: time checks, restarts, error tracking."""
+    """Bookkeeping shared by the models: time checks, restarts, error tracking.
+
+    A model's ``_update`` marks its forecast warm when the model is ready to forecast; only
+    those forecasts are measured (errors of a model still converging say nothing of the model
+    it has become). A forecast is then warm once ``min_measured`` errors have been measured
+    one period ahead.
+    """
 
     name = "base"
+    min_measured = 0
 
     def __init__(self, dt: float = 0.1, max_lead_s: float = 4.0, max_gap_s: float = 0.5) -> None:
         self.dt, self.max_gap_s = dt, max_gap_s
@@ -54,10 +61,14 @@ class Predictor:
         self.updates += 1
         self.tracker.observe(t, p)
         forecast = self._update(t, p)
-        if forecast is not None:
-            forecast.sigma = np.sqrt(self.tracker.sigma(forecast.leads) ** 2
-                                     + self.observation_var)
+        if forecast is None:
+            return None
+        forecast.sigma = np.sqrt(self.tracker.sigma(forecast.leads) ** 2 + self.observation_var)
+        if forecast.warm:
             self.tracker.keep(forecast)
+            if self.min_measured:
+                k = min(len(self.leads) - 1, int(round(forecast.period_s / self.dt)))
+                forecast.warm = self.tracker.measured(self.leads[k]) >= self.min_measured
         return forecast
 
     def restart(self) -> None:
@@ -132,6 +143,7 @@ class BlendPredictor(Predictor):
     """Lag regression and harmonic model, weighted per lead by their recent errors."""
 
     name = "blend"
+    min_measured = 20
 
     def __init__(self, **kw: float) -> None:
         super().__init__(**kw)
@@ -178,8 +190,7 @@ class BlendPredictor(Predictor):
         params = self.harmonic.parameters()
         k = min(len(self.leads) - 1, int(round(period / self.dt))) if omega else 0
         params["lag_weight_at_period"] = float(w_lag[k])
-        warm = bool(self.lag.warm and self.harmonic.warm
-                    and self.tracker.measured(self.leads[k]) >= 20)
+        warm = bool(self.lag.warm and self.harmonic.warm)
         return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, warm)
 
 

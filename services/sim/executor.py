@@ -30,6 +30,7 @@ from pydantic import BaseModel, Field
 
 from wavegrasp.planner.timing import Limits, sample_segment, segment
 from wavegrasp.schemas import GraspPlan
+from wavegrasp.schemas.path import interpolate_path
 from wavegrasp.sim.world import SimWorld
 
 
@@ -218,8 +219,7 @@ class Executor:
         window = (times >= a.approved_at) & (times <= min(a.t_grasp, t_pred[-1]))
         if not window.any():
             return None
-        predicted = np.column_stack([np.interp(times[window], t_pred, p_pred[:, k])
-                                     for k in range(3)])
+        predicted = interpolate_path(t_pred, p_pred, times[window])
         off = np.linalg.norm(truth[window] - predicted, axis=1)
         if off[0] > limit / 2 or off.max() <= limit:
             return None
