@@ -1,8 +1,9 @@
 """Predictor models against ground truth, fed the perception service's centroids.
 
 For every warm forecast (the ones the pipeline acts on) made after ``warmup_s``, the predicted
-position at 0.25, 0.5 and 1 wave period ahead (the wave's own period, known to the benchmark, never to the models) is compared
-with the ground truth there; coverage is the share of 1-period errors within 2 sigma.
+position at 0.25, 0.5 and 1 wave period ahead (the wave's own period, known to the benchmark,
+never to the models) is compared with the ground truth there; coverage is the share of
+1-period errors within 2 sigma.
 """
 
 from __future__ import annotations

@@ -63,6 +63,10 @@ class ErrorTracker:
         self.alphas = np.array([1.0 / memory, 1.0 / (3 * memory)])
         self.mse = np.full((n_leads, 2), np.nan)
         self.count = np.zeros(n_leads, dtype=int)
+        # A spline's coefficients are linear in the sampled positions: on the fixed lead
+        # grid, one product with the spline of each unit sample gives them.
+        leads = np.arange(n_leads) * dt
+        self._basis = path_spline(leads, np.eye(n_leads)).c  # (4, n_leads - 1, n_leads)
         self.reset()
 
     def reset(self) -> None:
@@ -103,7 +107,7 @@ class ErrorTracker:
         """Measure ``forecast`` against the observations to come, read between its samples
         as every reader reads a prediction (cubic)."""
         self._t0.append(forecast.t0)
-        self._splines.append(path_spline(forecast.leads, forecast.positions).c)
+        self._splines.append(self._basis @ forecast.positions)
 
     def _bins(self, leads: np.ndarray) -> np.ndarray:
         return np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
