@@ -19,12 +19,23 @@ import argparse
 import numpy as np
 
 from wavegrasp.ops.sample import cached_recording
-from wavegrasp.perception.evaluate import run_perception
+from wavegrasp.perception.evaluate import Track, run_perception
+from wavegrasp.perception.main import observation
+from wavegrasp.planner.collision import Body
 from wavegrasp.planner.evaluate import score
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
+from wavegrasp.schemas import Header
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.waves import TABLE_I
+
+
+def planner_body(track: Track) -> Body:
+    """The object as the planner service sees it: perception's last fit, as observed."""
+    if track.last_fit is None:
+        return Body(0.05)
+    return Body.from_observation(observation(Header(), track.last_fit,
+                                             int(track.last_fit.inliers.sum())))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,14 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|")
     all_times, all_errors, planned, attempts = [], [], 0, 0
     for wave in TABLE_I:
-        for name, spec in OBJECTS.items():
+        for name in OBJECTS:
             path = cached_recording(wave=wave, object=name, seconds=a.seconds, seed=a.seed)
             tf = StaticTransforms()
             tf.update(decode_tf(next(m for m in open_recording(path).messages()
                                      if m.topic == "/tf_static").cdr))
-            axis = None if spec.shape == "sphere" else np.array([0.0, 0.0, 1.0])
-            s = score(run_perception(path), tf.lookup("world", "bravo_base_link"),
-                      (spec.radius, spec.length / 2, axis))
+            track = run_perception(path)
+            s = score(track, tf.lookup("world", "bravo_base_link"), planner_body(track))
             all_times.append(s.times_ms)
             all_errors.append(s.grasp_errors)
             planned, attempts = planned + s.plans, attempts + s.attempts
@@ -82,9 +92,8 @@ def suite(seed: int, count: int) -> int:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
         o = s.object
-        body = (o.diameter_m / 2, (o.length_m or o.diameter_m) / 2,
-                None if o.family == "sphere" else np.array([0.0, 0.0, 1.0]))
-        r = score(run_perception(cached_recording(s)), T, body)
+        track = run_perception(cached_recording(s))
+        r = score(track, T, planner_body(track))
         if not r.attempts:  # perception's centroids never warmed the predictor
             print(f"| {s.name} | {o.family} | | no warm prediction | | | |", flush=True)
             rates.append(0.0)

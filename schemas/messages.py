@@ -88,6 +88,12 @@ class ObjectObservation(Message):
     radius_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
     length_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
     fit_rms_m: float | None = Field(None, ge=0.0, description="RMS distance of points to the shape")
+    side: Vec3 | None = Field(None, description="a box: unit direction across its axis of its "
+                              "thinner extent, world")
+    side_width_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M,
+                                       description="a box: its extent along side")
+    breadth_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M,
+                                    description="a box: its extent across both axis and side")
 
 
 class ObjectMesh(Message):

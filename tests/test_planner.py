@@ -18,7 +18,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import clearance, extent, hand_hits
+from wavegrasp.planner.collision import Body, clearance, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
@@ -28,7 +28,7 @@ from wavegrasp.wavetank.scenario import paper_scenario
 from conftest import Router
 
 OMEGA = 2 * np.pi / 1.08
-BODY = (0.033, 0.061, np.array([0.0, 0.0, 1.0]))  # the 355 ml can, upright
+BODY = Body(0.033, 0.061, np.array([0.0, 0.0, 1.0]))  # the 355 ml can, upright
 
 
 def swing(t: np.ndarray, centre=(0.0, 0.0, 0.525)) -> np.ndarray:
@@ -92,7 +92,7 @@ def test_trajectory_passes_the_waypoints_on_time_within_limits(
     d = motion_direction(path, plan.t_grasp)
     offset = plan.points[0] - p_f
     n = offset / np.linalg.norm(offset)
-    assert np.linalg.norm(offset) == pytest.approx(cfg.alpha_m + extent(BODY, n))
+    assert np.linalg.norm(offset) == pytest.approx(cfg.alpha_m + BODY.extent(n))
     assert abs(offset @ d) < 1e-9
     # The tool passes through every waypoint (the path is sampled every 20 ms).
     for point in plan.points:
@@ -153,13 +153,13 @@ def test_grasp_orientations_close_across_the_motion_and_the_axis(axis) -> None:
 
 def test_the_palm_meets_an_upright_bottle_from_above_but_not_from_the_side(
         arm: ArmModel) -> None:
-    bottle = (0.032, 0.08, np.array([0.0, 0.0, 1.0]))
+    bottle = Body(0.032, 0.08, np.array([0.0, 0.0, 1.0]))
     down, side = np.eye(4), np.eye(4)
     down[:3, :3] = np.diag([1.0, -1.0, -1.0])  # tool z pointing down at the bottle's top
     side[:3, :3] = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
     assert hand_hits(arm, down, bottle)
     assert not hand_hits(arm, side, bottle)
-    assert not hand_hits(arm, down, (0.06, 0.06, None))  # the 12 cm buoy fits the jaw
+    assert not hand_hits(arm, down, Body(0.06))  # the 12 cm buoy fits the jaw
 
 
 def test_the_self_check_plans_at_start_and_says_when_it_cannot(

@@ -10,6 +10,7 @@ import pytest
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import ObjectShape, SimWorld
@@ -18,7 +19,7 @@ from wavegrasp.wavetank.scenario import paper_scenario
 
 OMEGA = 2 * np.pi / 1.08
 CAN = ObjectShape("cylinder", 0.033, 0.122)
-BODY = (0.033, 0.061, np.array([0.0, 0.0, 1.0]))
+BODY = Body(0.033, 0.061, np.array([0.0, 0.0, 1.0]))
 UPRIGHT = np.array([0.0, 0.0, 0.0, 1.0])
 NOW = 10.0
 

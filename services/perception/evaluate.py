@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.pipeline import Perception, PerceptionConfig
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_pose, decode_tf
@@ -60,7 +61,8 @@ class Track:
 
     stamps_ns : array, shape (n,), camera frames; centres : array, shape (n, 3), metres, world,
     NaN where no centroid was reported; sigmas : shape (n,), metres, the reported uncertainty;
-    times_ms, points : per frame; truth_ns, truth : the ground truth, shape (m,) and (m, 3).
+    times_ms, points : per frame; truth_ns, truth : the ground truth, shape (m,) and (m, 3);
+    last_fit : the last frame's shape fit (None if none was fitted).
     """
 
     path: Path
@@ -71,6 +73,7 @@ class Track:
     points: np.ndarray
     truth_ns: np.ndarray
     truth: np.ndarray
+    last_fit: ShapeFit | None = None
 
 
 def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
@@ -79,6 +82,7 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
     tf = StaticTransforms()
     truth: dict[int, np.ndarray] = {}
     stamps, centres, sigmas, times, sizes = [], [], [], [], []
+    last_fit = None
     for m in open_recording(path).messages():
         if m.topic == "/tf_static":
             tf.update(decode_tf(m.cdr))
@@ -95,10 +99,11 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
             stamps.append(cloud.stamp_ns)
             centres.append(np.full(3, np.nan) if result.fit is None else result.fit.centre)
             sigmas.append(np.nan if result.fit is None else result.fit.sigma)
+            last_fit = result.fit or last_fit
     truth_ns = np.array(sorted(truth))
     return Track(Path(path), np.array(stamps), np.reshape(centres, (-1, 3)), np.array(sigmas),
                  np.array(times),
-                 np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]))
+                 np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]), last_fit)
 
 
 def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:

@@ -22,6 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from wavegrasp.checks import StampOrder
+from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
 from wavegrasp.recording_io.ros_msgs import (
@@ -57,6 +58,25 @@ class PerceptionSettings(Settings):
                              "list); empty: the service's own")
     max_cloud_points: int = Field(2_000_000, gt=0, description="a bigger camera frame (width "
                                   "x height) is refused unread: the camera sends ~40k points")
+
+
+def vec(v: np.ndarray) -> Vec3:
+    return Vec3(x=v[0], y=v[1], z=v[2])
+
+
+def observation(header: Header, fit: ShapeFit, points_used: int) -> ObjectObservation:
+    """The observation of a frame whose object was fitted with ``fit`` from ``points_used``
+    points; a box's also carries its faces across its axis."""
+    quality = min(1.0, points_used / 150) * min(1.0, 0.003 / max(fit.rms, 1e-6))
+    box = {}
+    if fit.frame is not None and fit.size is not None:
+        thin, broad = np.argsort(fit.size)[:2]  # the two extents across the longest
+        box = {"side": vec(fit.frame[:, thin]), "side_width_m": float(fit.size[thin]),
+               "breadth_m": float(fit.size[broad])}
+    return ObjectObservation(
+        header=header, centroid=vec(fit.centre), points_used=points_used, quality=quality,
+        sigma_m=fit.sigma, shape=fit.shape, axis=vec(fit.axis), radius_m=fit.radius,
+        length_m=fit.length, fit_rms_m=fit.rms, **box)
 
 
 def object_rotation(axis: np.ndarray) -> np.ndarray:
@@ -189,15 +209,9 @@ class PerceptionService(Service):
         self.bus.publish(OBJECT_KEY, ObjectObservation(header=header, reason=reason))
 
     def publish_observation(self, header: Header, result: FrameResult, n_points: int) -> None:
-        fit = result.fit
-        assert fit is not None
+        assert result.fit is not None
         self.counters["observed"] += 1
-        quality = min(1.0, len(result.points) / 150) * min(1.0, 0.003 / max(fit.rms, 1e-6))
-        self.bus.publish(OBJECT_KEY, ObjectObservation(
-            header=header, centroid=Vec3(x=fit.centre[0], y=fit.centre[1], z=fit.centre[2]),
-            points_used=len(result.points), quality=quality, sigma_m=fit.sigma,
-            shape=fit.shape, axis=Vec3(x=fit.axis[0], y=fit.axis[1], z=fit.axis[2]),
-            radius_m=fit.radius, length_m=fit.length, fit_rms_m=fit.rms))
+        self.bus.publish(OBJECT_KEY, observation(header, result.fit, len(result.points)))
 
     def start_mesh_if_due(self) -> None:
         """Rebuild the mesh on the worker once the frames in it have doubled, at least every

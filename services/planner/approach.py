@@ -107,8 +107,8 @@ def perpendicular(d: np.ndarray, towards: np.ndarray) -> np.ndarray:
 
 
 def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.ndarray,
-                       count: int = 7, outwards: np.ndarray | None = None
-                       ) -> list[np.ndarray]:
+                       count: int = 7, outwards: np.ndarray | None = None,
+                       faces: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """Tool orientations for a grasp of an object arriving along ``d`` (unit, world), best
     first: arrays, shape (3, 3), columns x (the jaws close along it), y, z (the tool points
     along it), world. A cylinder's (unit ``axis``) jaws always close across its axis.
@@ -121,9 +121,12 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
     an arm that looks across the motion, or along it, grasps the way it faces, and its final
     move is along the tool (see :func:`final_move`). Never up from below (where a tethered
     object's line is). The paper's family comes first; in each, those nearest the
-    ``preferred`` z (unit) first.
+    ``preferred`` z (unit) first. A box's jaws close on a pair of its ``faces`` (unit
+    normals across its axis): along a normal, or as near it as the family allows (within 30°).
     """
-    if axis is not None and np.linalg.norm(cross(axis, d)) > 0.3:
+    if faces is not None:
+        closings = _across(faces, d)
+    elif axis is not None and np.linalg.norm(cross(axis, d)) > 0.3:
         closings = [_unit(cross(axis, d))]
     else:  # a sphere, or a cylinder arriving end first: any closing direction across d
         e1 = cross(-preferred, d)
@@ -139,15 +142,22 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
     def best_first(frames: list[np.ndarray]) -> list[np.ndarray]:
         return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
 
-    facing = [] if outwards is None else _facing_frames(outwards, axis, d)
+    facing = [] if outwards is None else _facing_frames(outwards, axis, d, faces)
     return best_first(frames) + best_first(facing)
 
 
-def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None,
-                   d: np.ndarray) -> list[np.ndarray]:
+def _across(faces: list[np.ndarray], v: np.ndarray) -> list[np.ndarray]:
+    """The face normals (unit) that are within 30° of square to the unit ``v``, made square
+    to it."""
+    return [_unit(f - (f @ v) * v) for f in faces if abs(float(f @ v)) < 0.5]
+
+
+def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None, d: np.ndarray,
+                   faces: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """The arm's own family of :func:`grasp_orientations`: z along ``outwards``, along it
     without its part along a cylinder's axis, and turned ±30° about the vertical; per z the
-    jaws close across the axis, or (a sphere) in four directions, across the motion first."""
+    jaws close across the axis, on a box's faces, or (a sphere) in four directions, across
+    the motion first."""
     zs = [outwards]
     base = outwards if axis is None else outwards - (outwards @ axis) * axis
     if np.linalg.norm(base) > 0.3:  # not looking along a cylinder's axis
@@ -160,7 +170,9 @@ def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None,
         z = _unit(z)
         if z[2] >= 0.5:
             continue
-        if axis is not None:
+        if faces is not None:
+            xs = _across(faces, z)
+        elif axis is not None:
             if np.linalg.norm(cross(axis, z)) < 0.3:
                 continue
             xs = [_unit(cross(axis, z))]

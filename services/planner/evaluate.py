@@ -14,6 +14,7 @@ from mcap.reader import make_reader
 from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
 from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.predictor.models import make_predictor
 from wavegrasp.recording_io.ros_msgs import decode_pose
@@ -32,12 +33,12 @@ class PlannerScore:
     rejected: Counter = field(default_factory=Counter)
 
 
-def score(track: Track, T_world_base: np.ndarray, body: tuple[float, float, np.ndarray | None],
-          warmup_s: float = 10.0, cfg: PlannerConfig | None = None) -> PlannerScore:
+def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 10.0,
+          cfg: PlannerConfig | None = None) -> PlannerScore:
     """Feed perception's centroids to the default predictor and plan on every warm forecast
     after ``warmup_s``, from the arm's standby pose facing where the object was seen during
     the warm-up (:func:`~wavegrasp.planner.plan.standby_pose`, where the arm waits between
-    attempts). ``body``: the object's (radius, half length, axis), as perception reports it."""
+    attempts). ``body``: the object as perception reports it."""
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_move, standby_pose
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
@@ -98,7 +99,7 @@ class PlannerService(Service):
         self.tf = StaticTransforms()
         self.q_now = self.arm.q_home.copy()
         self.arm_moving = False
-        self.body: tuple[float, float, np.ndarray | None] = (0.05, 0.05, None)
+        self.body = Body(0.05)
         self.busy_until_ns = 0
         self._standby_until_ns = 0  # a standby move asked for: none again before its end
         #: Where it has been lately (a few seconds of centroids, metres, world).
@@ -119,8 +120,7 @@ class PlannerService(Service):
             c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
             self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
-            axis = None if msg.axis is None else np.array([msg.axis.x, msg.axis.y, msg.axis.z])
-            self.body = (msg.radius_m, (msg.length_m or 2 * msg.radius_m) / 2, axis)
+            self.body = Body.from_observation(msg)
 
     def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
         if len(msg.joint_names) != len(msg.positions):
@@ -175,7 +175,7 @@ class PlannerService(Service):
         pred = MotionPrediction(header=new_header(self.name, 0, 0), model="self-check",
                                 period_s=1.2, samples=samples, warm=True)
         result = plan_grasp(PredictedPath.from_message(pred), 0.0, self.arm, np.eye(4),
-                            self.arm.q_home.copy(), (0.04, 0.04, None), self.config)
+                            self.arm.q_home.copy(), Body(0.04), self.config)
         if isinstance(result, Plan):
             to_message(result, pred, 0, self.arm, self.name).model_dump_json()
             log.info("self-check: planned a grasp %.2f m from the shoulder in %.0f ms",

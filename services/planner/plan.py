@@ -29,7 +29,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, clearance, collides, extent, hand_hits
+from wavegrasp.planner.collision import Body, clearance, collides, hand_hits
 from wavegrasp.planner.timing import (
     Limits,
     least_duration,
@@ -106,7 +106,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
                q_now: np.ndarray, body: Body, cfg: PlannerConfig) -> Plan | Counter:
     """The best feasible plan, or a Counter of why every candidate was rejected.
 
-    body : (radius, half length, unit axis or None) of the object, metres, world.
+    body : the object's size and directions, metres, world.
     """
     rejected: Counter = Counter()
     base_world = T_world_base[:3, 3]
@@ -140,13 +140,16 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         # The paper's side approach from above the object and the arm's side of it first.
         towards = [0.0, 0.0, 1.0] - 0.5 * outwards
         quickest, tried_here = np.inf, 0
-        for R in grasp_orientations(d, body[2], -perpendicular(d, towards),
-                                    outwards=outwards):
+        for R in grasp_orientations(d, body.axis, -perpendicular(d, towards),
+                                    outwards=outwards, faces=body.faces):
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
             if R[:, 2] @ outwards < cfg.min_outwards:
                 rejected["points back at the arm"] += 1
+                continue
+            if 2.0 * body.extent(R[:, 0]) > arm.jaw_max_opening_m:
+                rejected["wider than the jaw"] += 1
                 continue
             if hand_hits(arm, T_grasp, body):
                 rejected["collision"] += 1
@@ -190,9 +193,9 @@ def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
     T_base_world = np.linalg.inv(T_world_base)
     seen = seen @ T_base_world[:3, :3].T + T_base_world[:3, 3]
     c = seen.mean(axis=0)
-    sway = float(np.linalg.norm(seen - c, axis=1).max()) + max(body[0], body[1])
+    sway = float(np.linalg.norm(seen - c, axis=1).max()) + body.half_size
     facing = arm.facing(c)
-    body = (body[0], body[1], None if body[2] is None else T_base_world[:3, :3] @ body[2])
+    body = body.rotated(T_base_world[:3, :3])
 
     def gap(q: np.ndarray) -> float:
         return clearance(arm, np.eye(4), q, seen, body)
@@ -274,7 +277,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     move = final_move(T_grasp[:3, :3], d)
     solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
-        points = waypoints(p_f, n, d, cfg.alpha_m + extent(body, n), cfg.waypoint_count,
+        points = waypoints(p_f, n, d, cfg.alpha_m + body.extent(n), cfg.waypoint_count,
                            cfg.beta_m, cfg.final_m, move)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
@@ -312,10 +315,10 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     # closes too slowly for an object that turns back right after the grasp time. The
     # opening also takes in how far the object moves along the closing direction x while
     # the fingers are either side of it (nearly nothing when they close across the motion).
-    width = 2.0 * body[0]
     x = T_grasp[:3, 0]
+    width = 2.0 * body.extent(x)
     rel = path.at(np.minimum(times, path.times_s[-1])) - tool  # object from the tool point
-    astride = (times >= final_from) & (np.abs(rel @ move) <= extent(body, move) + FINGER_M)
+    astride = (times >= final_from) & (np.abs(rel @ move) <= body.extent(move) + FINGER_M)
     sweep = float(np.abs(rel[astride] @ x).max()) if astride.any() else 0.0
     if width + 2.0 * sweep > arm.jaw_max_opening_m:
         return "object would hit a finger", 0.0
