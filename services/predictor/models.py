@@ -190,8 +190,11 @@ class BlendPredictor(Predictor):
         params = self.harmonic.parameters()
         k = min(len(self.leads) - 1, int(round(period / self.dt))) if omega else 0
         params["lag_weight_at_period"] = float(w_lag[k])
-        warm = bool(self.lag.warm and self.harmonic.warm)
-        return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, warm)
+        # Either model alone may forecast: the lag regression needs about 9 s without a gap
+        # over max_gap_s, which a slow camera or a perception that misses frames may never
+        # give it; the harmonic model fits whatever it is given.
+        ready = bool(omega) and (self.lag.warm or self.harmonic.warm)
+        return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, ready)
 
 
 def make_predictor(name: str, **kw: float) -> Predictor:

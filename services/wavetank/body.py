@@ -62,10 +62,10 @@ class ObjectSpec:
         return float(np.sum(np.diff(z) * (r[1:] + r[:-1])))
 
     @property
-    def width_across(self) -> float:
-        """The widest the object is across its axis, metres (a box: its diagonal)."""
-        return float(np.hypot(2 * self.radius, self.depth)) if self.shape == "box" else (
-            2 * self.radius)
+    def grasp_width(self) -> float:
+        """The narrowest a jaw closing across the object's axis can take it, metres: a box
+        between its nearer pair of faces, anything else across its widest."""
+        return min(2 * self.radius, self.depth) if self.shape == "box" else 2 * self.radius
 
     @property
     def bounding_radius(self) -> float:

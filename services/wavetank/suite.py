@@ -161,13 +161,14 @@ def reach_verdict(s: Scenario) -> str | None:
 
 def grasp_verdict(s: Scenario) -> str | None:
     """Why the arm cannot grasp the object at all, judged from the arm model alone: beyond
-    its reach (:func:`reach_verdict`), or wider across than its jaw opens; or None."""
+    its reach (:func:`reach_verdict`), or wider than its jaw opens however it takes it; or
+    None."""
     reach = reach_verdict(s)
     if reach:
         return reach
     arm = default_arm()
-    across = s.object.spec().width_across
-    if across >= arm.jaw_max_opening_m:
-        return (f"the object is up to {across * 100:.1f} cm across, the jaw opens "
-                f"{arm.jaw_max_opening_m * 100:.1f} cm")
+    width = s.object.spec().grasp_width
+    if width >= arm.jaw_max_opening_m:
+        return (f"the object is {width * 100:.1f} cm across where the jaw would take it, the "
+                f"jaw opens {arm.jaw_max_opening_m * 100:.1f} cm")
     return None
