@@ -231,6 +231,23 @@ def test_the_standby_pose_waits_clear_of_where_the_object_sways(
     assert np.linalg.norm(arm.forward(q)[:3, 3] - centre) <= np.linalg.norm(home - centre)
 
 
+def test_the_standby_pose_near_the_first_joints_limit_stays_on_the_objects_side(
+        arm: ArmModel) -> None:
+    """An object just inside the first joint's limit (behind the mount, within reach of the
+    home pose turned to it, which it touches): the arm waits on the object's side of that
+    limit, not beyond it, from where every grasp is a near-full turn away."""
+    t = np.arange(0.0, 5.0, 0.1)
+    yaw = np.radians(-168.0)
+    radial = 0.47 + 0.13 * np.sin(2 * np.pi * t / 1.35)
+    seen = np.column_stack([radial * np.cos(yaw), radial * np.sin(yaw), 0.42 + 0 * t])
+    sphere = Body(0.044)
+    facing = arm.facing(seen.mean(axis=0))
+    assert clearance(arm, np.eye(4), facing, seen, sphere) < 0.01  # facing touches it
+    q = standby_pose(arm, np.eye(4), seen, sphere)
+    assert clearance(arm, np.eye(4), q, seen, sphere) > 0.01
+    assert abs(q[0] - facing[0]) < np.pi / 2
+
+
 def test_the_approach_spline_is_timed_leg_by_leg_within_limits(arm: ArmModel) -> None:
     """Long legs and a short last one with a corner (the pre-grasp point): every leg gets its
     own duration, so the path is within velocity, acceleration and jerk everywhere and

@@ -184,8 +184,10 @@ def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
     side. ``seen`` : array, shape (k, 3), metres, world: where the object's centroid has been
     lately (none yet: the home pose). Where the arm facing it would touch the object at one
     of those places, as it does for an object near the shoulder, a ready pose ``margin_m``
-    beyond the object's sway with the tool pointing at it; failing that, whichever of the
-    two keeps farthest from the object."""
+    beyond the object's sway with the tool pointing at it, of those clear of the object the
+    one nearest (in time, joint by joint) to facing it: an object near the first joint's
+    limits is otherwise waited for on the far side of them (measured: grasps 5 rad away, 4.3
+    s to reach); failing that, whichever of the two keeps farthest from the object."""
     seen = np.asarray(seen, dtype=float).reshape(-1, 3)
     seen = seen[~np.isnan(seen).any(axis=1)]
     if not len(seen):
@@ -202,10 +204,13 @@ def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
 
     if gap(facing) > 0.01:
         return facing
+    clear = []
     for u, back in _ready_directions(c - arm.shoulder):
         ready = arm.inverse_position(c - (sway + margin_m + back) * u, u, facing)
         if ready is not None and gap(ready[0]) > 0.01:
-            return ready[0]
+            clear.append(ready[0])
+    if clear:  # the one the arm turns from quickest towards facing, where grasps are solved
+        return min(clear, key=lambda q: float(np.max(np.abs(q - facing) / arm.max_velocity)))
     return max([facing, arm.q_home.copy()], key=gap)
 
 
