@@ -11,6 +11,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from wavegrasp.ops.suite import recording_seconds
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import decode_tf
 from wavegrasp.wavetank.record import RecordConfig, generate, main
@@ -137,7 +138,7 @@ def test_eval_suite_random_runs_drawn_scenarios_and_reports_them_by_factor(
         "--jobs", "2", "--out", str(out)), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
-    drawn, _ = draw_scenarios(2, 3, seconds=21.0)
+    drawn, _ = draw_scenarios(2, 3, seconds=recording_seconds(1, 3))
     ran = [r["scenario"] for r in report["runs"]]
     # Every drawn scenario is either run or listed with the reason it was not.
     assert sorted(ran + list(report["out_of_reach"])) == sorted(s.name for s in drawn)
