@@ -7,7 +7,6 @@ model actually made, recently, at the same lead time (:class:`ErrorTracker`).
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,24 +70,24 @@ class ErrorTracker:
 
     def reset(self) -> None:
         """Forget the kept forecasts (a restart); the measured errors stay."""
-        self._t0: deque[float] = deque()
-        self._splines: deque[np.ndarray] = deque()
+        # Kept forecasts, oldest first, in rows start:end of arrays that grow by doubling: a
+        # slice of them is a view, where a deque had to be copied at every observation.
+        self._t0 = np.empty(16)
+        self._splines = np.empty((16, *self._basis.shape[:2], 3))
+        self._start = self._end = 0
 
     def observe(self, t: float, p: np.ndarray) -> None:
         horizon = (self.n_leads - 1) * self.dt
-        while self._t0 and t - self._t0[0] > horizon - 1e-9:
-            self._t0.popleft()
-            self._splines.popleft()
-        if not self._t0:
+        while self._start < self._end and t - self._t0[self._start] > horizon - 1e-9:
+            self._start += 1
+        if self._start == self._end:
             return
-        t0 = np.fromiter(self._t0, float)
-        coefs = np.asarray(self._splines)  # (K, 4, n_leads - 1, 3): cubic pieces per lead
-        x = (t - t0) / self.dt
-        ok = x > 1e-6
-        x, coefs = x[ok], coefs[ok]
+        x = (t - self._t0[self._start:self._end]) / self.dt
+        rows = self._start + np.flatnonzero(x > 1e-6)
+        x = x[rows - self._start]
         i = np.minimum(np.floor(x).astype(int), self.n_leads - 2)
         s = ((x - i) * self.dt)[:, None]
-        c = coefs[np.arange(len(i)), :, i]  # (k, 4, 3)
+        c = self._splines[rows, :, i]  # (k, 4, 3): the cubic piece each forecast is in
         predicted = ((c[:, 0] * s + c[:, 1]) * s + c[:, 2]) * s + c[:, 3]
         err2 = np.sum((predicted - p) ** 2, axis=1)
         bins = np.round(x).astype(int)
@@ -106,8 +105,16 @@ class ErrorTracker:
     def keep(self, forecast: Forecast) -> None:
         """Measure ``forecast`` against the observations to come, read between its samples
         as every reader reads a prediction (cubic)."""
-        self._t0.append(forecast.t0)
-        self._splines.append(self._basis @ forecast.positions)
+        if self._end == len(self._t0):  # full: move the live rows to the front, grow if needed
+            live = slice(self._start, self._end)
+            size = max(16, 2 * (self._end - self._start))
+            t0, splines = np.empty(size), np.empty((size, *self._splines.shape[1:]))
+            n = self._end - self._start
+            t0[:n], splines[:n] = self._t0[live], self._splines[live]
+            self._t0, self._splines, self._start, self._end = t0, splines, 0, n
+        self._t0[self._end] = forecast.t0
+        self._splines[self._end] = self._basis @ forecast.positions
+        self._end += 1
 
     def _bins(self, leads: np.ndarray) -> np.ndarray:
         return np.clip(np.round(leads / self.dt).astype(int), 1, self.n_leads - 1)
