@@ -7,6 +7,7 @@ Positions are metres in frame ``world`` (z up) unless a field says otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -56,6 +57,11 @@ class Vec3(Message):
     x: Coordinate
     y: Coordinate
     z: Coordinate
+
+    @classmethod
+    def of(cls, v: Sequence[float]) -> Vec3:
+        """From an array of shape (3,)."""
+        return cls(x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
 class Quaternion(Message):

@@ -60,10 +60,6 @@ class PerceptionSettings(Settings):
                                   "x height) is refused unread: the camera sends ~40k points")
 
 
-def vec(v: np.ndarray) -> Vec3:
-    return Vec3(x=v[0], y=v[1], z=v[2])
-
-
 def observation(header: Header, fit: ShapeFit, points_used: int) -> ObjectObservation:
     """The observation of a frame whose object was fitted with ``fit`` from ``points_used``
     points; a box's also carries its faces across its axis."""
@@ -71,11 +67,11 @@ def observation(header: Header, fit: ShapeFit, points_used: int) -> ObjectObserv
     box = {}
     if fit.frame is not None and fit.size is not None:
         thin, broad = np.argsort(fit.size)[:2]  # the two extents across the longest
-        box = {"side": vec(fit.frame[:, thin]), "side_width_m": float(fit.size[thin]),
+        box = {"side": Vec3.of(fit.frame[:, thin]), "side_width_m": float(fit.size[thin]),
                "breadth_m": float(fit.size[broad])}
     return ObjectObservation(
-        header=header, centroid=vec(fit.centre), points_used=points_used, quality=quality,
-        sigma_m=fit.sigma, shape=fit.shape, axis=vec(fit.axis), radius_m=fit.radius,
+        header=header, centroid=Vec3.of(fit.centre), points_used=points_used, quality=quality,
+        sigma_m=fit.sigma, shape=fit.shape, axis=Vec3.of(fit.axis), radius_m=fit.radius,
         length_m=fit.length, fit_rms_m=fit.rms, **box)
 
 

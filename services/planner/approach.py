@@ -37,11 +37,6 @@ class PredictedPath:
                    pred.period_s)
 
     @cached_property
-    def spacing_s(self) -> float:
-        """The median time between samples, seconds."""
-        return float(np.median(np.diff(self.times_s)))
-
-    @cached_property
     def spline(self):  # noqa: ANN201 (scipy's CubicSpline)
         return path_spline(self.times_s, self.positions)
 

@@ -56,10 +56,6 @@ class PlannerSettings(Settings):
                                    "again after this much recording time")
 
 
-def vec(p: np.ndarray) -> Vec3:
-    return Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
-
-
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
                service: str, standby: np.ndarray | None = None) -> GraspPlan:
     ns = lambda t: int(round(t * 1e9))  # noqa: E731
@@ -71,13 +67,13 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
         plan_id=f"{pred.header.seq}-{ns(plan.t_grasp)}", t_start_ns=ns(plan.t_start),
         t_grasp_ns=ns(plan.t_grasp),
         grasp=grasp,
-        approach=vec(plan.approach), joint_names=list(arm.joint_names),
+        approach=Vec3.of(plan.approach), joint_names=list(arm.joint_names),
         joint_trajectory=[{"t_ns": t, "positions": qi, "velocities": vi}
                           for t, qi, vi in zip(t_ns, plan.q.tolist(), plan.qd.tolist(),
                                                strict=True)],
         cartesian_path=[{"t_ns": t, "x": p[0], "y": p[1], "z": p[2]}
                         for t, p in zip(t_ns, plan.tool.tolist(), strict=True)],
-        confidence=plan.confidence, waypoints=[vec(p) for p in plan.points],
+        confidence=plan.confidence, waypoints=[Vec3.of(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
         t_close_ns=ns(plan.t_close), candidates=candidates,
         standby=[] if standby is None else standby.tolist()))
@@ -87,7 +83,7 @@ def poses(Ts: list[np.ndarray]) -> list[Pose]:
     """(4, 4) transforms (at least one) as Poses; one rotation conversion for all (scipy's
     per-call cost is most of it)."""
     quats = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts])).as_quat()
-    return [Pose(position=vec(T[:3, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+    return [Pose(position=Vec3.of(T[:3, 3]), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
             for T, q in zip(Ts, quats, strict=True)]
 
 
