@@ -22,6 +22,9 @@ from wavegrasp.planner.collision import Body, clearance, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
+from wavegrasp.runtime.bus import Delivery
+from wavegrasp.runtime.trace import new_header
+from wavegrasp.schemas import MotionPrediction, PredictionSample
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 
@@ -172,6 +175,40 @@ def test_the_self_check_plans_at_start_and_says_when_it_cannot(
             service.config = PlannerConfig(max_times=0)  # no grasp time may be tried
             service.self_check()
         assert "self-check: no grasp 0.56 m in front of the shoulder" in caplog.text
+    finally:
+        service.bus.close()
+
+
+def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
+                                                               arm: ArmModel) -> None:
+    """A mount turned away from the object: no grasp from the home pose, so the planner asks
+    for its standby; until that move ends (the arm still looks idle before it starts) it
+    plans nothing: a plan from the old pose would be approved, then refused by the arm."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        T_world_base = np.eye(4)
+        T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
+        service.tf.update([("world", arm.base_link, T_world_base)])
+        service.seen.extend(swing(np.arange(0.0, 10.0, 0.1)))
+
+        def predict(now: float) -> tuple[MotionPrediction, Delivery]:
+            path = prediction(now)
+            samples = [PredictionSample(t_ns=int(round(t * 1e9)), x=p[0], y=p[1], z=p[2],
+                                        sigma=0.002) for t, p in zip(path.times_s,
+                                                                     path.positions,
+                                                                     strict=True)]
+            msg = MotionPrediction(header=new_header("predictor", 0, int(now * 1e9)),
+                                   model="test", period_s=path.period_s, samples=samples,
+                                   warm=True)
+            return msg, Delivery("p", b"", "", None, 0, 0)
+
+        service.plan(*predict(10.0))
+        assert service.counters["standby moves"] == 1, dict(service.counters)
+        service.plan(*predict(10.1))
+        assert service.counters["skipped: standby move"] == 1, dict(service.counters)
+        assert service.counters["plans"] + service.counters["no plan"] == 1
+        service.plan(*predict(service._standby_end_ns * 1e-9 + 0.1))
+        assert service.counters["plans"] + service.counters["no plan"] == 2
     finally:
         service.bus.close()
 

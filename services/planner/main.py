@@ -101,6 +101,7 @@ class PlannerService(Service):
         self.body = Body(0.05)
         self.busy_until_ns = 0
         self._standby_until_ns = 0  # a standby move asked for: none again before its end
+        self._standby_end_ns = 0  # and no plan before it ends: the arm will not be where it is
         self._standby: tuple[int, bytes, np.ndarray] | None = None  # (solved at, mount, q)
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
@@ -207,6 +208,12 @@ class PlannerService(Service):
         if not msg.warm or msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             return
+        if msg.header.stamp_ns < self._standby_end_ns:
+            # Until the arm has started the move it asked for it still looks idle; a plan
+            # from here would be approved and then refused by an arm moving elsewhere
+            # (measured: two trials lost waiting for a grasp that never started).
+            self.counters["skipped: standby move"] += 1
+            return
         try:
             T_world_base = self.tf.lookup("world", self.arm.base_link)
         except ValueError as exc:
@@ -257,7 +264,8 @@ class PlannerService(Service):
             return
         times, q, qd = move
         t_ns = np.rint(times * 1e9).astype(np.int64)
-        self._standby_until_ns = int(t_ns[-1]) + 1_000_000_000
+        self._standby_end_ns = int(t_ns[-1])
+        self._standby_until_ns = self._standby_end_ns + 1_000_000_000
         self.counters["standby moves"] += 1
         self.bus.publish(STANDBY_KEY, ArmStandby.model_validate(dict(
             header=derived_header(msg.header, self.name, d.recv_ns), t_start_ns=int(t_ns[0]),
