@@ -71,20 +71,26 @@ def test_an_object_that_cannot_be_is_refused_naming_the_field(obj: dict, problem
         ObjectModel(**obj)
 
 
+#: The families perception's accuracy is tested on (label prefixes of FAMILIES). The flat
+#: ellipsoid's outline was fitted about a wrong axis and learnt as a sphere (6.9 mm off, 69 %
+#: of frames).
+ACCURACY = ("box 8 x 5 x 15 cm, turned", "ellipsoid 7", "ellipsoid 12", "bottle 6.5")
+
+
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("families")
     paths = {}
     for label, wave, obj in FAMILIES:
-        if label.startswith(("box 8 x 5 x 15 cm, turned", "ellipsoid 7", "bottle 6.5")):
+        if label.startswith(ACCURACY):
             paths[label] = out / f"{len(paths)}.mcap"
             generate(family_scenario(label, wave, obj, 8.0, 1), paths[label])
     return paths
 
 
-@pytest.mark.parametrize("family", ["box", "ellipsoid", "bottle"])
-def test_perception_finds_the_volume_centroid_of_each_family(recordings, family: str) -> None:
-    path = next(p for label, p in recordings.items() if label.startswith(family))
+@pytest.mark.parametrize("prefix", ACCURACY)
+def test_perception_finds_the_volume_centroid_of_each_family(recordings, prefix: str) -> None:
+    path = next(p for label, p in recordings.items() if label.startswith(prefix))
     ev = evaluate(path)
     assert ev.observed >= 0.9, ev.row()
     assert ev.rmse <= 0.003, ev.row()

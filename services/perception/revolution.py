@@ -2,8 +2,8 @@
 one-sided noisy point cloud; return its volume centre.
 
 The axis is the line about which the points' distances are the same at every height: each
-point's distance from it, less the mean distance of its height's slice (slices
-``SLICE_M`` thick), is the residual, minimised by Gauss-Newton over the line's four
+point's distance from the outline (the mean distances of slices ``SLICE_M`` thick, joined by
+straight lines), measured across the outline, is the residual, minimised by Gauss-Newton over the line's four
 parameters (a numerical Jacobian: four columns). The outline is then the slices' mean
 distances, and the volume centre lies on the axis at the centroid of the solid that outline
 sweeps (frusta summed), so a neck or a tapering end moves it as it moves the object's mass.
@@ -48,12 +48,26 @@ def _slices(p: np.ndarray, c: np.ndarray, a: np.ndarray):
     return h, rho, k, med, count
 
 
+def _off_outline(h: np.ndarray, rho: np.ndarray, k: np.ndarray, med: np.ndarray,
+                 count: np.ndarray) -> np.ndarray:
+    """Each point's distance from the outline (the slices' mean distances joined by straight
+    lines), across it: where the outline slopes, as near an ellipsoid's pole, a distance
+    along the radius overstates it, and a slice 4 mm thick spans millimetres of radius: an
+    oblate ellipsoid's true axis then left more residual than a wrong one (measured 1.39
+    against 1.31 mm), and was not chosen. Zero for points of slices too sparse to say."""
+    ok = count >= MIN_SLICE_POINTS
+    if ok.sum() < 2:
+        r = rho - med[k]
+    else:
+        z = h.min() + (np.flatnonzero(ok) + 0.5) * SLICE_M
+        slope = np.gradient(med[ok], z)
+        r = (rho - np.interp(h, z, med[ok])) / np.sqrt(1.0 + np.interp(h, z, slope) ** 2)
+    return np.where(ok[k], r, 0.0)
+
+
 def _residual(x, p, base, a0, e1, e2) -> np.ndarray:
     c, a = _line(x, base, a0, e1, e2)
-    _, rho, k, med, count = _slices(p, c, a)
-    r = rho - med[k]
-    r[count[k] < MIN_SLICE_POINTS] = 0.0
-    return r
+    return _off_outline(*_slices(p, c, a))
 
 
 def _fit_line(p: np.ndarray, base: np.ndarray, a0: np.ndarray) -> tuple[np.ndarray, float]:
@@ -80,8 +94,8 @@ def _fit_line(p: np.ndarray, base: np.ndarray, a0: np.ndarray) -> tuple[np.ndarr
 
 def _inliers(p: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.ndarray:
     """The points within 3 standard deviations (at least MIN_THRESHOLD) of the outline."""
-    _, rho, k, med, count = _slices(p, c, a)
-    r = rho - med[k]
+    h, rho, k, med, count = _slices(p, c, a)
+    r = _off_outline(h, rho, k, med, count)
     return (np.abs(r) < max(3 * float(np.std(r)), MIN_THRESHOLD)) & (count[k] >= MIN_SLICE_POINTS)
 
 
@@ -114,7 +128,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     c, a = _line(*_fit_line(p[inliers], c, a)[:1], c, a, *_frame(a))
     inliers = _inliers(p, c, a)
     h, rho, k, med, count = _slices(p[inliers], c, a)
-    r = rho - med[k]
+    r = _off_outline(h, rho, k, med, count)
     used = np.flatnonzero(count >= MIN_SLICE_POINTS)
     if len(used) < 3:
         raise ValueError("too few slices along the axis for an outline")
@@ -127,9 +141,13 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
         raise ValueError("the outline's centre falls outside the object (no solid of "
                          "revolution fits)")
     rms = float(np.sqrt(np.mean(r**2)))
-    if prior is not None and (abs(z[-1] - z[0] - prior.length) > max(
-            SLICE_M * 2, 0.1 * prior.length) or rms > 1.5 * prior.rms):
-        raise ValueError("the outline differs from the one learnt (a partial view)")
+    if prior is not None and abs(z[-1] - z[0] - prior.length) > max(SLICE_M * 2,
+                                                                    0.1 * prior.length):
+        raise ValueError(f"the outline is {(z[-1] - z[0]) * 100:.1f} cm long, the one learnt "
+                         f"{prior.length * 100:.1f} cm (a partial view)")
+    if prior is not None and rms > 1.5 * prior.rms:
+        raise ValueError(f"the outline is {rms * 1e3:.2f} mm off the points, the one learnt "
+                         f"{prior.rms * 1e3:.2f} mm (a partial view)")
     # Across the axis as a wall fit's; along it, the outline's ends (a slice each).
     sigma = float(np.hypot(rms / np.sqrt(max(inliers.sum(), 1)) * 4, SLICE_M / 4))
     a = a if a[2] >= 0 else -a
