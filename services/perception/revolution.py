@@ -4,9 +4,10 @@ one-sided noisy point cloud; return its volume centre.
 The axis is the line about which the points' distances are the same at every height: each
 point's distance from the outline (the mean distances of slices ``SLICE_M`` thick, joined by
 straight lines), measured across the outline, is the residual, minimised by Gauss-Newton
-over the line's four parameters (a numerical Jacobian: four columns). The outline is then the slices' mean
-distances, and the volume centre lies on the axis at the centroid of the solid that outline
-sweeps (frusta summed), so a neck or a tapering end moves it as it moves the object's mass.
+over the line's four parameters (a numerical Jacobian: four columns). The outline is then
+the slices' mean distances, and the volume centre lies on the axis at the centroid of the
+solid that outline sweeps (frusta summed), so a neck or a tapering end moves it as it moves
+the object's mass.
 A sphere or cylinder fit of such objects is off by 7-73 mm (measured); its faceless sides and
 ends are seen as they are, so no part of the outline is assumed.
 """
