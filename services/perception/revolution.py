@@ -58,11 +58,16 @@ def _off_outline(h: np.ndarray, rho: np.ndarray, k: np.ndarray, med: np.ndarray,
     against 1.31 mm), and was not chosen. Zero for points of slices too sparse to say."""
     ok = count >= MIN_SLICE_POINTS
     if ok.sum() < 2:
-        r = rho - med[k]
-    else:
-        z = h.min() + (np.flatnonzero(ok) + 0.5) * SLICE_M
-        slope = np.gradient(med[ok], z)
-        r = (rho - np.interp(h, z, med[ok])) / np.sqrt(1.0 + np.interp(h, z, slope) ** 2)
+        return np.where(ok[k], rho - med[k], 0.0)
+    # The outline through the slices' centres, sparse slices bridged; each point read on the
+    # segment between the two centres about it (indexing: a search per point was 3x slower).
+    used = np.flatnonzero(ok)
+    outline = np.interp(np.arange(len(med)), used, med[used])
+    u = (h - h.min()) / SLICE_M - 0.5
+    j = np.minimum(np.maximum(np.floor(u).astype(int), 0), len(med) - 2)
+    w = np.minimum(np.maximum(u - j, 0.0), 1.0)
+    slope = (outline[j + 1] - outline[j]) / SLICE_M
+    r = (rho - outline[j] - w * (outline[j + 1] - outline[j])) / np.sqrt(1.0 + slope**2)
     return np.where(ok[k], r, 0.0)
 
 
