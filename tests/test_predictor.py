@@ -47,6 +47,23 @@ def test_harmonic_fit_recovers_omega_amplitudes_and_phases() -> None:
     assert model.warm
 
 
+def test_a_wrong_first_guess_of_omega_is_left_for_the_spectrums_peak() -> None:
+    """The first guess comes from two seconds of frames (a 0.5 Hz resolution); what the object
+    did then (here: drifting as it is first tracked) may put it far off. A 5 Hz camera on a
+    1.43 s swing: the guess was a 6.3 s period, only ever refined by 10 %, never warm."""
+    model = HarmonicModel()
+    omega = 2 * np.pi / 1.43
+    for t in np.arange(0.0, 30.0, 0.2):
+        if t < 2.2:
+            p = np.array([0.05 * t, 0.0, 0.5])
+        else:
+            p = np.array([0.1 * np.sin(omega * t), 0.02 * np.sin(omega * t + 1.0),
+                          0.5 - 0.01 * np.cos(2 * omega * t)])
+        model.update(float(t), p)
+    assert model.omega == pytest.approx(omega, rel=0.01)
+    assert model.warm
+
+
 def test_linear_is_the_constant_velocity_extrapolation() -> None:
     model = LinearPredictor(window_s=0.3)
     t, p = stream(3.0, jitter_s=0.02)
