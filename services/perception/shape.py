@@ -70,7 +70,7 @@ def outline_explains_better(outline: ShapeFit, other: ShapeFit) -> bool:
     """Does the free outline explain the points better than a sphere or cylinder once its
     many more parameters (a radius per slice) are paid for? The Bayesian information
     criterion over the points both keep: n ln(RSS/n) + k ln n. Near the sensor's noise both
-    RMS are close (a 13 x 15 cm ellipsoid: 1.3 against 1.65 mm, over a 1000 points), yet
+    RMS are close (a 13 x 15 cm ellipsoid: 1.3 against 1.65 mm, over 1000 points), yet
     the sphere's systematic share is as large as the noise, and its radius 6 mm too large."""
     if other.shape not in ("sphere", "cylinder") or min(outline.rms, other.rms) <= 0:
         return False

@@ -47,6 +47,7 @@ from wavegrasp.schemas import (
 log = logging.getLogger("wavegrasp.planner")
 PLAN_KEY = "wavegrasp/planner/plan"
 STANDBY_KEY = "wavegrasp/planner/standby"
+STANDBY_AGAIN_NS = 1_000_000_000  # after a standby move ends, before another may be asked
 
 
 class PlannerSettings(Settings):
@@ -100,8 +101,9 @@ class PlannerService(Service):
         self.arm_moving = False
         self.body = Body(0.05)
         self.busy_until_ns = 0
-        self._standby_until_ns = 0  # a standby move asked for: none again before its end
-        self._standby_end_ns = 0  # and no plan before it ends: the arm will not be where it is
+        # The end of the standby move asked for last: no plan before it (the arm will not be
+        # where it is), and no other standby move until a second after it.
+        self._standby_end_ns = -STANDBY_AGAIN_NS
         self._standby: tuple[int, bytes, np.ndarray] | None = None  # (solved at, mount, q)
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
@@ -253,7 +255,8 @@ class PlannerService(Service):
                     T_world_base: np.ndarray) -> None:
         """No plan from where the idle arm is: have it move to its standby first, once the
         object has been seen a while and unless a move asked for earlier is still under way."""
-        if len(self.seen) < self.seen.maxlen // 2 or msg.header.stamp_ns < self._standby_until_ns:
+        if len(self.seen) < self.seen.maxlen // 2 or (
+                msg.header.stamp_ns < self._standby_end_ns + STANDBY_AGAIN_NS):
             return
         move = standby_move(self.arm, T_world_base, self.q_now,
                             self.standby(T_world_base, msg.header.stamp_ns), path,
@@ -265,7 +268,6 @@ class PlannerService(Service):
         times, q, qd = move
         t_ns = np.rint(times * 1e9).astype(np.int64)
         self._standby_end_ns = int(t_ns[-1])
-        self._standby_until_ns = self._standby_end_ns + 1_000_000_000
         self.counters["standby moves"] += 1
         self.bus.publish(STANDBY_KEY, ArmStandby.model_validate(dict(
             header=derived_header(msg.header, self.name, d.recv_ns), t_start_ns=int(t_ns[0]),
