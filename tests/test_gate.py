@@ -151,6 +151,26 @@ def test_too_few_matches_is_warming_up() -> None:
     assert not d.go and d.reason == "warming up: 7 of 10 errors"
 
 
+def test_a_slow_camera_needs_fewer_matches_but_still_a_full_window() -> None:
+    """A 5 Hz camera gives 10 frames in the 2 s window; with a quarter of them lacking a
+    centroid the window never holds min_matches (10) errors. The rate sets the need instead,
+    and a window not yet full still waits."""
+    gate, rng = Gate(), np.random.default_rng(0)
+    for i in range(21):  # 0 .. 4 s every 0.2 s
+        t = i / 5
+        obs = observation(t, rng.normal(0, 0.001, 3))
+        if i % 4 == 3:
+            obs = obs.model_copy(update={"centroid": None})
+        gate.on_observation(obs)
+        gate.on_prediction(prediction(t))
+        if t == 1.2:
+            early = decide(gate, plan(1.2, 1.5, 2.2), now_s=1.25)
+    assert not early.go and early.failed == ["warming up"], early.reason
+    d = decide(gate, plan(4.0, 4.3, 5.0), now_s=4.05)
+    assert d.go and d.matches < 10, d.reason
+    assert gate.required_matches() == 6
+
+
 def test_one_plan_executes_at_a_time() -> None:
     gate = Gate()
     feed(gate)

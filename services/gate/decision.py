@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -45,6 +45,9 @@ class GateConfig(BaseModel):
     epsilon_m: float = Field(0.010, gt=0, description="ε: highest mean prediction error, m")
     window_s: float = Field(2.0, gt=0, description="Δt_w: window of the mean error, s")
     min_matches: int = Field(10, ge=1, description="errors in the window before any go")
+    min_match_fraction: float = Field(0.6, gt=0, le=1, description="or, from a camera too "
+                                      "slow to give min_matches in a window, this fraction of "
+                                      "the frames its rate gives in one")
     match_lead_s: float = Field(0.2, ge=0, description="least lead of the prediction scored, s")
     max_input_age_s: float = Field(0.5, gt=0, description="oldest observation/prediction, s")
     abrupt_factor: float = Field(3.0, ge=1, description="abrupt: e > factor × ē before it")
@@ -104,6 +107,8 @@ class Gate:
         self.tracks: list[_Track] = []  # sorted by made_ns
         self.errors: list[ErrorSample] = []  # sorted by t_ns
         self.latest_observation_ns: int | None = None
+        # The latest observations' stamps (ns), centroid or not: the camera's frame rate.
+        self.arrivals: deque[int] = deque(maxlen=21)
         self.executing: dict[str, int] = {}  # approved plan id -> until (ns)
         self.counts: Counter[str] = Counter()
 
@@ -112,6 +117,7 @@ class Gate:
         self.tracks.clear()
         self.errors.clear()
         self.latest_observation_ns = None
+        self.arrivals.clear()
         self.executing.clear()
         self.counts["resets"] += 1
 
@@ -153,6 +159,8 @@ class Gate:
         observation's or is older (by less than ``window_s``: more is a restart).
         """
         c = obs.centroid
+        if not self.arrivals or obs.header.stamp_ns > self.arrivals[-1]:
+            self.arrivals.append(obs.header.stamp_ns)
         if c is None:
             self.counts["observations without centroid"] += 1
             return None
@@ -209,6 +217,19 @@ class Gate:
             return None
         return time_average([e.t_ns for e in errors], [e.error_m for e in errors])
 
+    def required_matches(self) -> int:
+        """Errors the window must hold before a go: ``min_matches``, or fewer from a camera
+        whose frame rate (the median interval between the latest observations, with or
+        without a centroid) gives fewer than ``min_matches / min_match_fraction`` frames in
+        ``window_s``: a 5 Hz camera gives 10 frames in 2 s, and every one of them would have
+        to be scored."""
+        cfg = self.config
+        if len(self.arrivals) < 2:
+            return cfg.min_matches
+        interval_s = float(np.median(np.diff(self.arrivals))) / NS
+        frames = cfg.window_s / interval_s
+        return max(2, min(cfg.min_matches, math.ceil(cfg.min_match_fraction * frames)))
+
     def decide(self, plan: GraspPlan, now_ns: int, alive: set[str], latency_s: float,
                header: Header | None = None) -> GateDecision:
         """Go only if every check passes; otherwise no-go naming each failed check.
@@ -227,8 +248,9 @@ class Gate:
         failed: list[tuple[str, str]] = []
         errors = self.window(now_ns)
         mean = self.mean_error(now_ns)
-        if len(errors) < cfg.min_matches:
-            failed.append(("warming up", f"warming up: {len(errors)} of {cfg.min_matches} errors"))
+        required = self.required_matches()
+        if len(errors) < required:
+            failed.append(("warming up", f"warming up: {len(errors)} of {required} errors"))
         elif mean is not None and mean > cfg.epsilon_m:
             failed.append(("error", f"error {mean * 1e3:.1f} mm > {cfg.epsilon_m * 1e3:.1f} mm"))
         failed += self._freshness(plan, now_ns)
