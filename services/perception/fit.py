@@ -18,6 +18,10 @@ MIN_THRESHOLD = 0.003  # metres: points farther than this (or 3 sigma) from the 
 ROBUST_SCALE = 0.002  # metres: the Cauchy loss is quadratic below this residual, flat far above
 CAP_MIN_POINTS = 8  # a flat end needs this many points to set the end's position by itself
 END_MARGIN = 0.005  # metres: the wall refit leaves out points this close to an end (cap rims)
+#: metres: a fit this near the points is never judged far off them against a learnt fit (a
+#: noise-free or very fine cloud's learnt fits are a few tenths of a millimetre off, and a
+#: ratio of such is no sign of a wrong axis or a partial view)
+RMS_FLOOR_M = 0.001
 GAP = 15.0  # mean point spacings (and >= 5 mm): a wider gap along the axis splits off strays
 
 Model = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -40,6 +44,11 @@ class ShapeFit:
     frame: np.ndarray | None = None  # a box: shape (3, 3), its axes (columns)
     size: np.ndarray | None = None  # a box: shape (3,), metres, its extents along them
     whole: np.ndarray | None = None  # a box: shape (3,), bool, the extent seen whole
+
+    def far_off(self, rms: float, ratio: float) -> bool:
+        """Whether a fit ``rms`` metres off its points is far off next to this (learnt) fit:
+        more than ``ratio`` times its RMS and more than RMS_FLOOR_M."""
+        return rms > max(ratio * self.rms, RMS_FLOOR_M)
 
 
 def check_points(points: np.ndarray, min_points: int = 20) -> np.ndarray:

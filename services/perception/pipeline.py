@@ -128,7 +128,7 @@ class Perception:
             fit = fit_shape(candidate, eye, self._start())
         except ValueError as exc:
             return self._miss(f"shape fit failed: {exc}")
-        if self.prior is not None and fit.rms > self.cfg.max_rms_ratio * self.prior.rms:
+        if self.prior is not None and self.prior.far_off(fit.rms, self.cfg.max_rms_ratio):
             # Its sigma says nothing of it: measured 17 frames of a tilting cylinder 57 mm off
             # with sigma 1 mm, its axis 90 degrees out, 6 mm off the points against 0.5.
             return self._miss(f"fit failed: {fit.rms * 1e3:.1f} mm off the points, the learnt "

@@ -151,7 +151,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
                                                                     0.1 * prior.length):
         raise ValueError(f"the outline is {(z[-1] - z[0]) * 100:.1f} cm long, the one learnt "
                          f"{prior.length * 100:.1f} cm (a partial view)")
-    if prior is not None and rms > 1.5 * prior.rms:
+    if prior is not None and prior.far_off(rms, 1.5):
         raise ValueError(f"the outline is {rms * 1e3:.2f} mm off the points, the one learnt "
                          f"{prior.rms * 1e3:.2f} mm (a partial view)")
     # Across the axis as a wall fit's; along it, the outline's ends (a slice each).
