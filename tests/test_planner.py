@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, clearance, hand_hits
+from wavegrasp.planner.collision import Body, Turns, clearance, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
@@ -152,6 +153,61 @@ def test_grasp_orientations_close_across_the_motion_and_the_axis(axis) -> None:
         assert R[:, 2] @ d <= 1e-9 and R[:, 2][2] < 0.5  # never from behind, never from below
     scores = [R[:, 2] @ preferred for R in frames]
     assert scores == sorted(scores, reverse=True)
+
+
+def test_an_object_reaches_its_corners_and_rims_along_any_direction() -> None:
+    """A jaw preshaped to the rounded model the collision checks sweep closed on a box's
+    edges 30 degrees off its faces (5 cm narrower than the box there) and pushed it out."""
+    up, side = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    box = Body(0.047, 0.058, up, side, 0.056)  # 9.4 x 11.2 x 11.6 cm
+    x = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
+    assert box.extent(side) == pytest.approx(0.047)
+    assert box.extent(x) == pytest.approx(0.047 * np.cos(np.radians(30)) + 0.056 * 0.5)
+    corner = np.array([0.047, 0.056, 0.058])
+    assert box.extent(corner / np.linalg.norm(corner)) == pytest.approx(np.linalg.norm(corner))
+    # A cylinder's rim: along a direction 45 degrees off its axis.
+    tilted = np.array([np.sqrt(0.5), 0.0, np.sqrt(0.5)])
+    assert BODY.extent(tilted) == pytest.approx((0.061 + 0.033) * np.sqrt(0.5))
+    assert BODY.extent(side) == pytest.approx(0.033) and Body(0.06).extent(x) == 0.06
+
+
+def test_a_rocking_object_is_expected_turned_as_it_was_whole_periods_before() -> None:
+    """A box rocking 15 degrees either way with the waves: at a time to come, its
+    orientation is the one observed a whole number of periods earlier."""
+    period = 2.0
+    times = np.arange(0.0, 4.0, 0.05)
+
+    def tilt(t: np.ndarray) -> np.ndarray:
+        return np.radians(15.0) * np.sin(2 * np.pi * np.asarray(t) / period)
+
+    def frame(a: float) -> np.ndarray:  # turned by a about world x
+        c, s = np.cos(a), np.sin(a)
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+    now = frame(tilt(times[-1]))
+    turns = Turns(times, np.array([frame(a) for a in tilt(times)]) @ now.T, period)
+    ahead = np.array([4.3, 5.0, 6.1])
+    box = replace(Body(0.02, 0.08, now[:, 2], now[:, 0], 0.04), turns=turns)
+    for t, R in zip(ahead, turns.at(ahead), strict=True):
+        assert R @ now == pytest.approx(frame(tilt(t)), abs=0.02)
+        assert box.at(t).axis == pytest.approx(frame(tilt(t))[:, 2], abs=0.02)
+    assert turns.at(-1.0)[0] == pytest.approx(np.eye(3))  # before the record: as it is
+
+
+def test_a_link_near_a_boxs_corner_touches_it() -> None:
+    """A segment 1 cm off a box's corner along its diagonal: the rounded model was 1.8 cm
+    or more inside the corner there and called it clear."""
+    box = Body(0.04, 0.08, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 0.05)
+    corner = np.array([0.04, 0.05, 0.08])
+    out = corner / np.linalg.norm(corner)
+    tangent = np.cross(out, [0.0, 0.0, 1.0])
+    p = corner + 0.01 * out
+    gap = box.gaps((p - 0.05 * tangent)[None, None], (p + 0.05 * tangent)[None, None],
+                   np.zeros((1, 3)))
+    assert gap[0, 0] == pytest.approx(0.01, abs=0.002)
+    face = box.gaps(np.array([[[0.06, -0.1, 0.0]]]), np.array([[[0.06, 0.1, 0.0]]]),
+                    np.zeros((1, 3)))
+    assert face[0, 0] == pytest.approx(0.02, abs=1e-6)
 
 
 def test_the_palm_meets_an_upright_bottle_from_above_but_not_from_the_side(

@@ -16,14 +16,43 @@ from wavegrasp.arm.transforms import cross
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.schemas import ObjectObservation, Vec3
 
+#: metres: the most apart the points sampled along a link's axis are where it is checked
+#: against a box (the distance found is at most half this above the true one)
+LINK_SAMPLE_M = 0.01
+
+
+@dataclass(frozen=True)
+class Turns:
+    """How the object turns as it sways, from its recent observations: ``times`` (m,), s,
+    increasing; ``rotations`` (m, 3, 3) from its latest orientation to the one observed
+    then; the sea's ``period_s``. Its orientation at a time to come is the one observed
+    whole periods before it: measured on a box rocking 15° either way, 0.2-0.7° off at the
+    grasp, where its orientation when the plan was made was 13-15° off."""
+
+    times: np.ndarray
+    rotations: np.ndarray
+    period_s: float
+
+    def at(self, t: float | np.ndarray) -> np.ndarray:
+        """Rotations, shape (k, 3, 3), from the latest orientation to that at each ``t``
+        (shape (k,) or a scalar), seconds; none (the identity) before the record."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        periods = np.maximum(np.ceil((t - self.times[-1]) / self.period_s - 1e-9), 0.0)
+        back = t - periods * self.period_s
+        i = np.clip(np.searchsorted(self.times, back), 1, len(self.times) - 1)
+        i = np.where(back - self.times[i - 1] < self.times[i] - back, i - 1, i)
+        out = self.rotations[i]
+        out[back < self.times[0]] = np.eye(3)
+        return out
+
 
 @dataclass(frozen=True)
 class Body:
     """The object as the planner models it, metres, world: a sphere of ``radius`` (no
     ``axis``), or that sphere swept along the unit ``axis`` to ``half_length`` from the
-    centroid either way (a cylinder: a capsule), and for a box also across its axis along
-    ``breadth_axis`` (unit, ⟂ ``axis`` and ``side``) to ``half_breadth``: a box of thinnest
-    extent ``2 * radius`` (along the unit ``side``) with its edges rounded.
+    centroid either way (a cylinder: a capsule), or a box: ``half_length`` along its axis,
+    ``half_breadth`` along ``breadth_axis`` (unit, ⟂ ``axis`` and ``side``) and ``radius``
+    along the unit ``side``, its thinnest. ``turns``: how it turns as it sways.
     """
 
     radius: float
@@ -31,6 +60,8 @@ class Body:
     axis: np.ndarray | None = None
     side: np.ndarray | None = None
     half_breadth: float = 0.0
+    #: How it turns over time (None: it keeps its orientation).
+    turns: Turns | None = None
 
     @classmethod
     def from_observation(cls, msg: ObjectObservation) -> Body:
@@ -62,35 +93,75 @@ class Body:
         """Its farthest reach from the centroid along any of its axes."""
         return max(self.radius, self.half_length, self.half_breadth)
 
+    @property
+    def frame(self) -> np.ndarray | None:
+        """Its orientation, shape (3, 3), columns: a box's side, breadth axis and axis; for a
+        cylinder two directions across its axis, then the axis; None for a sphere."""
+        if self.axis is None:
+            return None
+        side = self.side
+        if side is None:
+            side = cross(self.axis, [1.0, 0.0, 0.0] if abs(self.axis[0]) < 0.9 else
+                         [0.0, 1.0, 0.0])
+            side = side / np.linalg.norm(side)
+        return np.column_stack([side, cross(self.axis, side), self.axis])
+
+    def at(self, t: float) -> Body:
+        """The body as it will be turned at ``t`` seconds (itself if it keeps still)."""
+        if self.turns is None or self.axis is None:
+            return self
+        return self.rotated(self.turns.at(t)[0])
+
+    def gaps(self, p0: np.ndarray, p1: np.ndarray, centres: np.ndarray,
+             times: np.ndarray | None = None) -> np.ndarray:
+        """Distance, metres, from each segment p0-p1 (arrays, shape (k, c, 3), world) to
+        the object's surface with its centroid at ``centres`` (shape (k, 3)) and, given
+        ``times`` (shape (k,), s), turned as it will be then: array, shape (k, c), negative
+        where a segment is inside. A box is its own faces and corners; any other the
+        rounded model :meth:`spine` sweeps."""
+        k = len(centres)
+        turn = self.turns.at(times) if self.turns is not None and times is not None else (
+            np.broadcast_to(np.eye(3), (k, 3, 3)))
+        if self.side is None:
+            spine = np.einsum("kij,sj->ksi", turn, self.spine())
+            return segments_points_distance(p0, p1, centres[:, None, :] + spine) - self.radius
+        frames = turn @ self.frame  # (k, 3, 3): the box's axes at each time
+        count = int(np.ceil(np.linalg.norm(p1 - p0, axis=-1).max() / LINK_SAMPLE_M)) + 1
+        u = np.linspace(0.0, 1.0, count)[:, None]
+        samples = p0[:, :, None, :] + u * (p1 - p0)[:, :, None, :]  # (k, c, m, 3)
+        local = np.einsum("kcmi,kij->kcmj", samples - centres[:, None, None, :], frames)
+        over = np.abs(local) - np.array([self.radius, self.half_breadth, self.half_length])
+        distance = np.linalg.norm(np.maximum(over, 0.0), axis=-1) + np.minimum(
+            over.max(axis=-1), 0.0)
+        return distance.min(axis=-1)
+
     def rotated(self, R: np.ndarray) -> Body:
-        """The same body with its directions turned by ``R`` (3, 3)."""
+        """The same body with its directions turned by ``R`` (3, 3), keeping that
+        orientation."""
         return replace(self, axis=None if self.axis is None else R @ self.axis,
-                       side=None if self.side is None else R @ self.side)
+                       side=None if self.side is None else R @ self.side, turns=None)
 
     def extent(self, direction: np.ndarray) -> float:
-        """How far it reaches from its centroid along the unit ``direction``, metres."""
-        out = self.radius
-        if self.axis is not None:
-            out += abs(float(self.axis @ direction)) * max(self.half_length - self.radius, 0.0)
+        """How far the object itself reaches from its centroid along the unit ``direction``,
+        metres: a box's corners, a cylinder's rims (the rounded model the collision checks
+        sweep is inside them: across a box 30° off its faces it was 5 cm narrower, and a jaw
+        preshaped for it closed on the box's edges and pushed it out)."""
+        if self.axis is None:
+            return self.radius
+        along = abs(float(self.axis @ direction))
         b = self.breadth_axis
-        if b is not None:
-            out += abs(float(b @ direction)) * max(self.half_breadth - self.radius, 0.0)
-        return out
+        if b is None or self.side is None:
+            return along * self.half_length + np.sqrt(max(1.0 - along**2, 0.0)) * self.radius
+        return (along * self.half_length + abs(float(b @ direction)) * self.half_breadth
+                + abs(float(self.side @ direction)) * self.radius)
 
     def spine(self) -> np.ndarray:
         """Points (k, 3) relative to its centroid that, each with ``radius``, cover it: one
-        at the centroid for a sphere, five along the axis for a capsule, and rows of those
-        at most ``radius`` apart across a box's breadth."""
+        at the centroid for a sphere, five along the axis for a cylinder (a capsule)."""
         if self.axis is None:
             return np.zeros((1, 3))
-        line = np.linspace(-1.0, 1.0, 5)[:, None] * max(self.half_length - self.radius, 0.0)
-        points = line * self.axis
-        b, spread = self.breadth_axis, max(self.half_breadth - self.radius, 0.0)
-        if b is None or spread == 0.0:
-            return points
-        rows = int(np.ceil(2.0 * spread / self.radius)) + 1
-        offsets = np.linspace(-spread, spread, rows)[:, None] * b
-        return (points[None, :, :] + offsets[:, None, :]).reshape(-1, 3)
+        return np.linspace(-1.0, 1.0, 5)[:, None] * max(self.half_length - self.radius,
+                                                        0.0) * self.axis
 
 
 def hand_hits(arm: ArmModel, T_grasp: np.ndarray, body: Body) -> bool:
@@ -98,9 +169,8 @@ def hand_hits(arm: ArmModel, T_grasp: np.ndarray, body: Body) -> bool:
     (4, 4, world) and the object's centroid at the tool point? No kinematics needed."""
     p0, p1, link_radius = arm.hand_capsules
     R, t = T_grasp[:3, :3], T_grasp[:3, 3]
-    gap = segments_points_distance((p0 @ R.T + t)[None], (p1 @ R.T + t)[None],
-                                   (t + body.spine())[None])
-    return bool(np.any(gap[0] < body.radius + link_radius))
+    gap = body.gaps((p0 @ R.T + t)[None], (p1 @ R.T + t)[None], t[None])
+    return bool(np.any(gap[0] < link_radius))
 
 
 def segments_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -120,9 +190,11 @@ def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centres: n
     overlap."""
     p0, p1, link_radius = arm.capsules_batch(np.asarray(q)[None])
     R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-    points = (np.reshape(centres, (-1, 1, 3)) + body.spine()).reshape(1, -1, 3)
-    gap = segments_points_distance(p0 @ R.T + t, p1 @ R.T + t, points)
-    return float(np.min(gap[0] - link_radius) - body.radius)
+    centres = np.reshape(centres, (-1, 3))
+    shape = (len(centres), *p0.shape[1:])
+    gap = body.gaps(np.broadcast_to(p0 @ R.T + t, shape), np.broadcast_to(p1 @ R.T + t, shape),
+                    centres)
+    return float(np.min(gap - link_radius))
 
 
 def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
@@ -133,11 +205,10 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
     From ``final_from`` on (the final move: the grasp itself) the jaw fingers may close in
     and the rest of the arm may come near, but must not touch.
     """
-    radius = body.radius
-    centres = path.at(np.minimum(times, path.times_s[-1])).reshape(-1, 1, 3) + body.spine()
+    centres = path.at(np.minimum(times, path.times_s[-1])).reshape(-1, 3)
     p0, p1, link_radius = arm.capsules_batch(q)
     R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-    gap = segments_points_distance(p0 @ R.T + t, p1 @ R.T + t, centres) - radius - link_radius
+    gap = body.gaps(p0 @ R.T + t, p1 @ R.T + t, centres, times) - link_radius
     final = times >= final_from
     need = np.where(final[:, None], 0.0, clearance) * np.ones_like(gap)
     if arm.jaw_capsule_count:

@@ -15,6 +15,7 @@ import logging
 import sys
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 from pydantic import Field
@@ -23,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
-from wavegrasp.planner.collision import Body
+from wavegrasp.planner.collision import Body, Turns
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_move, standby_pose
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
@@ -107,6 +108,8 @@ class PlannerService(Service):
         self._standby: tuple[int, bytes, np.ndarray] | None = None  # (solved at, mount, q)
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
+        #: How it has been turned lately: (stamp ns, :attr:`Body.frame`), the same shape.
+        self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
@@ -123,7 +126,22 @@ class PlannerService(Service):
             c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
             self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
-            self.body = Body.from_observation(msg)
+            body = Body.from_observation(msg)
+            if (body.side is None) != (self.body.side is None):
+                self.frames.clear()  # another shape learnt: its turns so far are not this one's
+            self.body = body
+            if body.frame is not None:
+                self.frames.append((msg.header.stamp_ns, body.frame))
+
+    def turning(self, period_s: float) -> Body:
+        """The latest body, turning over the next periods as it turned over the last ones
+        (:class:`Turns`): a box or a long object rocks with the waves, tens of degrees."""
+        now = self.body.frame
+        if now is None or len(self.frames) < 2 or not period_s > 0:
+            return self.body
+        times = np.array([t for t, _ in self.frames]) * 1e-9
+        rotations = np.array([frame for _, frame in self.frames]) @ now.T
+        return replace(self.body, turns=Turns(times, rotations, period_s))
 
     def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
         if len(msg.joint_names) != len(msg.positions):
@@ -223,7 +241,7 @@ class PlannerService(Service):
             raise ValueError(f"no transform to the arm's mount: {exc}") from None
         path = PredictedPath.from_message(msg)
         result = plan_grasp(path, msg.header.stamp_ns * 1e-9, self.arm, T_world_base,
-                            self.q_now, self.body, self.config)
+                            self.q_now, self.turning(path.period_s), self.config)
         if not isinstance(result, Plan):
             self.counters["no plan"] += 1
             for reason, n in result.items():

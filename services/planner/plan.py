@@ -140,18 +140,19 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         # The paper's side approach from above the object and the arm's side of it first.
         towards = [0.0, 0.0, 1.0] - 0.5 * outwards
         quickest, tried_here = np.inf, 0
-        for R in grasp_orientations(d, body.axis, -perpendicular(d, towards),
-                                    outwards=outwards, faces=body.faces):
+        here = body.at(t_g)  # as it will be turned then
+        for R in grasp_orientations(d, here.axis, -perpendicular(d, towards),
+                                    outwards=outwards, faces=here.faces):
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
             if R[:, 2] @ outwards < cfg.min_outwards:
                 rejected["points back at the arm"] += 1
                 continue
-            if 2.0 * body.extent(R[:, 0]) > arm.jaw_max_opening_m:
+            if 2.0 * here.extent(R[:, 0]) > arm.jaw_max_opening_m:
                 rejected["wider than the jaw"] += 1
                 continue
-            if hand_hits(arm, T_grasp, body):
+            if hand_hits(arm, T_grasp, here):
                 rejected["collision"] += 1
                 continue
             if tried_here == cfg.max_orientations:
@@ -259,6 +260,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
                ) -> Plan | tuple[str, float]:
     """One grasp pose at one time: the plan, or why not and (if it cannot be timed) how long
     the arm needs from ``now + start_delay_s`` to the grasp."""
+    here = body.at(t_g)
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     T_base_world = np.linalg.inv(T_world_base)
     p_f = T_grasp[:3, 3]
@@ -282,7 +284,7 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     move = final_move(T_grasp[:3, :3], d)
     solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
-        points = waypoints(p_f, n, d, cfg.alpha_m + body.extent(n), cfg.waypoint_count,
+        points = waypoints(p_f, n, d, cfg.alpha_m + here.extent(n), cfg.waypoint_count,
                            cfg.beta_m, cfg.final_m, move)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
@@ -321,9 +323,9 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     # opening also takes in how far the object moves along the closing direction x while
     # the fingers are either side of it (nearly nothing when they close across the motion).
     x = T_grasp[:3, 0]
-    width = 2.0 * body.extent(x)
+    width = 2.0 * here.extent(x)
     rel = path.at(np.minimum(times, path.times_s[-1])) - tool  # object from the tool point
-    astride = (times >= final_from) & (np.abs(rel @ move) <= body.extent(move) + FINGER_M)
+    astride = (times >= final_from) & (np.abs(rel @ move) <= here.extent(move) + FINGER_M)
     sweep = float(np.abs(rel[astride] @ x).max()) if astride.any() else 0.0
     if width + 2.0 * sweep > arm.jaw_max_opening_m:
         return "object would hit a finger", 0.0
