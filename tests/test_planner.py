@@ -155,7 +155,7 @@ def test_grasp_orientations_close_across_the_motion_and_the_axis(axis) -> None:
     assert scores == sorted(scores, reverse=True)
 
 
-def test_an_object_reaches_its_corners_and_rims_along_any_direction() -> None:
+def test_a_box_reaches_its_corners_along_any_direction() -> None:
     """A jaw preshaped to the rounded model the collision checks sweep closed on a box's
     edges 30 degrees off its faces (5 cm narrower than the box there) and pushed it out."""
     up, side = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
@@ -165,9 +165,6 @@ def test_an_object_reaches_its_corners_and_rims_along_any_direction() -> None:
     assert box.extent(x) == pytest.approx(0.047 * np.cos(np.radians(30)) + 0.056 * 0.5)
     corner = np.array([0.047, 0.056, 0.058])
     assert box.extent(corner / np.linalg.norm(corner)) == pytest.approx(np.linalg.norm(corner))
-    # A cylinder's rim: along a direction 45 degrees off its axis.
-    tilted = np.array([np.sqrt(0.5), 0.0, np.sqrt(0.5)])
-    assert BODY.extent(tilted) == pytest.approx((0.061 + 0.033) * np.sqrt(0.5))
     assert BODY.extent(side) == pytest.approx(0.033) and Body(0.06).extent(x) == 0.06
 
 

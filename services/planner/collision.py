@@ -142,16 +142,16 @@ class Body:
                        side=None if self.side is None else R @ self.side, turns=None)
 
     def extent(self, direction: np.ndarray) -> float:
-        """How far the object itself reaches from its centroid along the unit ``direction``,
-        metres: a box's corners, a cylinder's rims (the rounded model the collision checks
-        sweep is inside them: across a box 30° off its faces it was 5 cm narrower, and a jaw
-        preshaped for it closed on the box's edges and pushed it out)."""
-        if self.axis is None:
-            return self.radius
-        along = abs(float(self.axis @ direction))
+        """How far it reaches from its centroid along the unit ``direction``, metres: a
+        box's corners (the rounded model was inside them: across a box 30° off its faces it
+        was 5 cm narrower, and a jaw preshaped for it closed on the box's edges and pushed
+        it out); a capsule round anything else (an ellipsoid's or a bottle's ends are
+        rounded: the rims of a cylinder round a 13 x 15 cm ellipsoid made it wider than the
+        jaw a few degrees off its equator)."""
+        along = 0.0 if self.axis is None else abs(float(self.axis @ direction))
+        if self.side is None:
+            return self.radius + along * max(self.half_length - self.radius, 0.0)
         b = self.breadth_axis
-        if b is None or self.side is None:
-            return along * self.half_length + np.sqrt(max(1.0 - along**2, 0.0)) * self.radius
         return (along * self.half_length + abs(float(b @ direction)) * self.half_breadth
                 + abs(float(self.side @ direction)) * self.radius)
 
