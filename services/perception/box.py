@@ -80,7 +80,8 @@ def _edge_gap(q: np.ndarray, direction: np.ndarray) -> float:
 
     The points of a face seen obliquely lie in rows; the row spacing along ``direction``
     (the largest step to one of a point's six nearest neighbours) is the step; the last row
-    falls half a step short on average.
+    falls half a step short on average. (The density filter before the fit drops more at a
+    face seen nearly edge-on: a 4 cm face at 70° still comes out about 8 mm short.)
     """
     _, nn = cKDTree(q).query(q, k=min(7, len(q)))
     step = np.abs((q[nn[:, 1:]] - q[:, None, :]) @ direction).max(axis=1)

@@ -29,11 +29,7 @@ class PerceptionConfig(BaseModel):
     workspace_min: tuple[float, float, float] = (-1.5, -1.5, -0.5)
     workspace_max: tuple[float, float, float] = (1.5, 1.5, 2.0)
     seabed_distance_m: float = Field(0.02, description="points this close to the seabed go")
-    density_radius_spacings: float = Field(5.0, description="neighbourhood, in point spacings: "
-                                           "a face seen at 70 degrees has a third of a face "
-                                           "on's density, and within 3.5 spacings it was "
-                                           "thinned to a strip (an 11 cm side learnt as 4-8 "
-                                           "cm); a line (the tether) has about 11 within 5")
+    density_radius_spacings: float = Field(3.5, description="neighbourhood, in point spacings")
     min_neighbours: int = Field(14, description="fewer: snow or tether, not a surface")
     cluster_eps_spacings: float = 2.5
     object_size_m: tuple[float, float] = (0.03, 0.40)
@@ -142,11 +138,6 @@ class Perception:
         if self.prior is None and not consistent_with(fit, self.learnt):
             return self._miss("partial view: the shape differs from the frames before")
         self._update_track(fit, stamp_ns)
-        if self.prior is None and len(self.learnt) < FIRST_AGREED:
-            # Learnt from, not reported: nothing yet says it is not the frame in a hundred
-            # whose stray points made a face (measured: a box seen face-on, never fitted
-            # otherwise, reported twice, 54 mm off).
-            return FrameResult(None, reason="learning the shape: a first fit")
         return FrameResult(fit, candidate[fit.inliers])
 
     def _start(self) -> ShapeFit | None:
@@ -219,19 +210,13 @@ class Perception:
                 self.prior = learnt_shape(self.learnt)
 
 
-#: The first fits of an object are learnt from as they come; from this many on, a fit is
-#: reported (and from the next on, only if it agrees with the median of those before).
-FIRST_AGREED = 3
-
-
 def consistent_with(fit: ShapeFit, fits: list[ShapeFit], tolerance: float = 0.1) -> bool:
     """While the shape is being learnt: do ``fit``'s sizes match the median of earlier fits?
 
     A free fit of a partly hidden cylinder is short, and its centre is off by half of what is
-    hidden; such a frame is not reported. The first FIRST_AGREED fits are taken as they come
-    (the ones before the last learnt from, not reported).
+    hidden; such a frame is not reported. The first three fits are taken as they come.
     """
-    if len(fits) < FIRST_AGREED:
+    if len(fits) < 3:
         return True
     for size in ("radius", "length"):
         median = float(np.median([getattr(f, size) for f in fits]))
