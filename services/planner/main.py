@@ -108,7 +108,7 @@ class PlannerService(Service):
         self._standby: tuple[int, bytes, np.ndarray] | None = None  # (solved at, mount, q)
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
-        #: How it has been turned lately: (stamp ns, :attr:`Body.frame`), the same shape.
+        #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
@@ -127,15 +127,18 @@ class PlannerService(Service):
             self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             body = Body.from_observation(msg)
-            if (body.side is None) != (self.body.side is None):
-                self.frames.clear()  # another shape learnt: its turns so far are not this one's
-            self.body = body
-            if body.frame is not None:
+            if body.side is None:
+                # Only a box is turned: its faces fix its orientation in every frame, where a
+                # round body's axis is read off its outline (a near-sphere's is poorly set),
+                # and the rocking that struck the fingers was measured on a box.
+                self.frames.clear()
+            else:
                 self.frames.append((msg.header.stamp_ns, body.frame))
+            self.body = body
 
     def turning(self, period_s: float) -> Body:
         """The latest body, turning over the next periods as it turned over the last ones
-        (:class:`Turns`): a box or a long object rocks with the waves, tens of degrees."""
+        (:class:`Turns`): a box rocks with the waves, tens of degrees."""
         now = self.body.frame
         if now is None or len(self.frames) < 2 or not period_s > 0:
             return self.body
