@@ -23,9 +23,6 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
     EXPLAINED_MORE more of the points than a sphere or cylinder (which leave a neck out as
     outliers).
 
-    A sphere or cylinder with a radius larger than the points' extent found no curvature and
-    is no candidate; without either, the box (every extent seen) or else the outline is taken.
-
     Else both are fitted with free sizes and the sphere wins unless the cylinder's RMS is below
     SHAPE_RMS_RATIO times the sphere's: a sphere fitted to a cylinder leaves residuals of several
     millimetres (the wall is straight along the axis), a cylinder fitted to a sphere does no
@@ -40,26 +37,13 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
             return fit_revolution(points, viewpoint, prior)
         return fit_cylinder(points, viewpoint, prior.radius, prior.length, prior.axis)
     sphere, cylinder = fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint)
-    # A sphere or cylinder wider than the points' whole extent has found no curvature: the
-    # points are flat patches (a thin box nearly face-on: spheres 8-170 m across won, and an
-    # outline "explaining more" than them was learnt, 63 mm off).
-    extent = float(np.linalg.norm(np.ptp(np.asarray(points), axis=0)))
-    curved = [f for f in (sphere, cylinder) if f.radius <= extent]
-    best: ShapeFit | None = None
-    if len(curved) == 2:
-        best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
-    elif curved:
-        best = curved[0]
+    best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
     for fit in (fit_box, fit_revolution):
         try:
             other = fit(points, viewpoint)
         except FaceOn:
             raise
         except ValueError:
-            continue
-        if best is None:
-            if other.shape != "box" or all(other.whole):
-                best = other
             continue
         if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
                 other.whole) or other.rms >= best.rms):
@@ -74,9 +58,6 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
                 not explains_more) and not outline_explains_better(other, best):
             continue
         best = other
-    if best is None:
-        raise ValueError("no shape fits: the points are flat (the sphere and cylinder fits "
-                         f"have radii of {min(sphere.radius, cylinder.radius):.1f} m)")
     return best
 
 
