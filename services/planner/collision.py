@@ -146,8 +146,8 @@ class Body:
         box's corners (the rounded model was inside them: across a box 30° off its faces it
         was 5 cm narrower, and a jaw preshaped for it closed on the box's edges and pushed
         it out); a capsule round anything else (an ellipsoid's or a bottle's ends are
-        rounded: the rims of a cylinder round a 13 x 15 cm ellipsoid made it wider than the
-        jaw a few degrees off its equator)."""
+        rounded: 10° off its equator, the rims of a cylinder round a 13 x 15 cm ellipsoid
+        reach 7.7 cm, wider than the jaw)."""
         along = 0.0 if self.axis is None else abs(float(self.axis @ direction))
         if self.side is None:
             return self.radius + along * max(self.half_length - self.radius, 0.0)
