@@ -95,20 +95,15 @@ class Body:
 
     @property
     def frame(self) -> np.ndarray | None:
-        """Its orientation, shape (3, 3), columns: a box's side, breadth axis and axis; for a
-        cylinder two directions across its axis, then the axis; None for a sphere."""
-        if self.axis is None:
+        """A box's orientation, shape (3, 3), columns: its side, breadth axis and axis; None
+        for anything else."""
+        if self.axis is None or self.side is None:
             return None
-        side = self.side
-        if side is None:
-            side = cross(self.axis, [1.0, 0.0, 0.0] if abs(self.axis[0]) < 0.9 else
-                         [0.0, 1.0, 0.0])
-            side = side / np.linalg.norm(side)
-        return np.column_stack([side, cross(self.axis, side), self.axis])
+        return np.column_stack([self.side, cross(self.axis, self.side), self.axis])
 
     def at(self, t: float) -> Body:
         """The body as it will be turned at ``t`` seconds (itself if it keeps still)."""
-        if self.turns is None or self.axis is None:
+        if self.turns is None:
             return self
         return self.rotated(self.turns.at(t)[0])
 
@@ -116,16 +111,15 @@ class Body:
              times: np.ndarray | None = None) -> np.ndarray:
         """Distance, metres, from each segment p0-p1 (arrays, shape (k, c, 3), world) to
         the object's surface with its centroid at ``centres`` (shape (k, 3)) and, given
-        ``times`` (shape (k,), s), turned as it will be then: array, shape (k, c), negative
-        where a segment is inside. A box is its own faces and corners; any other the
-        rounded model :meth:`spine` sweeps."""
-        k = len(centres)
-        turn = self.turns.at(times) if self.turns is not None and times is not None else (
-            np.broadcast_to(np.eye(3), (k, 3, 3)))
-        if self.side is None:
-            spine = np.einsum("kij,sj->ksi", turn, self.spine())
-            return segments_points_distance(p0, p1, centres[:, None, :] + spine) - self.radius
-        frames = turn @ self.frame  # (k, 3, 3): the box's axes at each time
+        ``times`` (shape (k,), s), a box turned as it will be then: array, shape (k, c),
+        negative where a segment is inside. A box is its own faces and corners; anything
+        else the rounded model :meth:`spine` sweeps."""
+        if self.frame is None:
+            return segments_points_distance(p0, p1, centres[:, None, :] + self.spine()) - (
+                self.radius)
+        frames = np.broadcast_to(self.frame, (len(centres), 3, 3))  # the box's axes each time
+        if self.turns is not None and times is not None:
+            frames = self.turns.at(times) @ self.frame
         count = int(np.ceil(np.linalg.norm(p1 - p0, axis=-1).max() / LINK_SAMPLE_M)) + 1
         u = np.linspace(0.0, 1.0, count)[:, None]
         samples = p0[:, :, None, :] + u * (p1 - p0)[:, :, None, :]  # (k, c, m, 3)

@@ -126,15 +126,14 @@ class PlannerService(Service):
             c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
             self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
-            body = Body.from_observation(msg)
-            if body.side is None:
-                # Only a box is turned: its faces fix its orientation in every frame, where a
-                # round body's axis is read off its outline (a near-sphere's is poorly set),
-                # and the rocking that struck the fingers was measured on a box.
+            self.body = Body.from_observation(msg)
+            # Only a box is turned: its faces fix its orientation in every frame, where a
+            # round body's axis is read off its outline (a near-sphere's is poorly set), and
+            # the rocking that struck the fingers was measured on a box.
+            if self.body.frame is None:
                 self.frames.clear()
             else:
-                self.frames.append((msg.header.stamp_ns, body.frame))
-            self.body = body
+                self.frames.append((msg.header.stamp_ns, self.body.frame))
 
     def turning(self, period_s: float) -> Body:
         """The latest body, turning over the next periods as it turned over the last ones
