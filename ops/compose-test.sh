@@ -85,8 +85,14 @@ ca=${WAVEGRASP_BUILD_CA:-/etc/ssl/certs/ca-certificates.crt}
 secret=()
 [ -s "$ca" ] && secret=(--secret "id=pip_cert,src=$ca")
 log "building wavegrasp:latest on $base"
+previous=$($DOCKER image inspect -f '{{.Id}}' wavegrasp:latest 2>/dev/null || true)
 DOCKER_BUILDKIT=1 $DOCKER build -q --build-arg "BASE=$base" "${secret[@]}" \
   -f ops/Dockerfile -t wavegrasp:latest . >/dev/null
+# Each rebuild after a change leaves the last image untagged (about 2 GB); repeated runs on one
+# machine would fill its disk.
+if [ -n "$previous" ] && [ "$previous" != "$($DOCKER image inspect -f '{{.Id}}' wavegrasp:latest)" ]; then
+  $DOCKER image rm "$previous" >/dev/null 2>&1 || true
+fi
 log "image: $($DOCKER image inspect -f '{{.Size}}' wavegrasp:latest | awk '{printf "%.0f MB", $1/1e6}')"
 
 # --- docker-compose up on the recording ---------------------------------------------------
