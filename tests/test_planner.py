@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
@@ -28,6 +29,7 @@ from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import MotionPrediction, PredictionSample
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
+from wavegrasp.wavetank.suite import mount_at
 
 from conftest import Router
 
@@ -101,11 +103,15 @@ def test_trajectory_passes_the_waypoints_on_time_within_limits(
     # The tool passes through every waypoint (the path is sampled every 20 ms).
     for point in plan.points:
         assert np.min(np.linalg.norm(plan.tool - point, axis=1)) < 0.005
-    # The last move, pre-grasp point to P_f, goes against the object's motion.
+    # The last move, pre-grasp point to P_f, goes against the object's motion (or, where
+    # the jaws close nearly along it, straight in along the tool), at least the paper's 5 cm.
     pre = plan.points[-2]
-    assert (p_f - pre) @ d / np.linalg.norm(p_f - pre) < -0.99
+    move = final_move(plan.grasp_T_world[:3, :3], d)
+    assert (p_f - pre) @ move == pytest.approx(np.linalg.norm(p_f - pre))
+    assert np.linalg.norm(p_f - pre) >= cfg.final_m - 1e-9
+    assert move @ d < -0.99 or move @ plan.grasp_T_world[:3, 2] > 0.99
     last = plan.tool[plan.times >= plan.times[-1] - 0.1]
-    assert (last[-1] - last[0]) @ d < 0
+    assert (last[-1] - last[0]) @ move > 0
     # Joint limits: positions, velocities, and (sampled) accelerations.
     assert np.all(plan.q >= arm.lower - 1e-9) and np.all(plan.q <= arm.upper + 1e-9)
     assert np.all(np.abs(plan.qd) <= arm.max_velocity * (1 + 1e-6))
@@ -389,3 +395,37 @@ def test_a_prediction_too_uncertain_to_grasp_on_is_not_planned(
     assert isinstance(result, Counter) and set(result) == {"prediction too uncertain"}
     assert isinstance(plan_grasp(good, 10.0, arm, T_world_base, arm.q_home, BODY,
                                  PlannerConfig()), Plan)
+
+
+
+def test_a_cylinder_nearly_as_wide_as_the_open_jaw_is_met_with_the_fingers_clear_of_it(
+        arm: ArmModel) -> None:
+    """An 11 cm bottle in a 14 cm jaw, the arm below it and to its side: from the paper's
+    final move, 5 cm out, the open fingers are astride it, a centimetre either side, and
+    every approach came too near (0 plans of 11); a final move that starts with them clear
+    of it keeps the approach's clearance."""
+    base = paper_scenario(2, "bottle")
+    scenario = paper_scenario(2, "bottle", mount=mount_at(base.rest, 0.54, -80.0, -0.25,
+                                                          -20.0))
+    position, quat = arm_mount(scenario)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
+    omega = 2 * np.pi / 2.2
+
+    def path(now: float) -> PredictedPath:
+        t = now + np.arange(35) * 0.1
+        p = np.asarray(scenario.rest) + np.column_stack(
+            [0.04 * np.sin(omega * t), 0 * t, -0.003 * np.cos(2 * omega * t)])
+        return PredictedPath(t, p, np.full(35, 0.002), 2 * np.pi / omega)
+
+    wide = Body(0.056, 0.088, np.array([0.0, 0.0, 1.0]))
+    q_standby = standby_pose(arm, T, path(0.0).positions, wide)
+    cfg = PlannerConfig()
+    plans = [(now, plan_grasp(path(now), now, arm, T, q_standby, wide, cfg))
+             for now in 10.0 + np.arange(11) * 0.2]
+    plans = [(now, p) for now, p in plans if isinstance(p, Plan)]
+    assert len(plans) >= 5, len(plans)
+    for now, plan in plans:
+        before = plan.times < plan.t_final
+        assert clearance(arm, T, plan.q[before][-1], path(now).at(plan.times[before][-1]),
+                         wide) >= cfg.clearance_m

@@ -33,7 +33,8 @@ class ArmModel:
     `link_names` (the chain's links after the base, the order of :meth:`forward_all`),
     `reach_m` (shoulder to tool with the arm straight: the offsets after the second arm joint),
     `q_home`, `hand_capsules` (p0, p1 : arrays, shape (h, 3), metres, frame tool; radius :
-    shape (h,): the links after the last arm joint, jaw fingers excluded), and `lower`,
+    shape (h,): the links after the last arm joint, jaw fingers excluded), `jaw_capsules` (the
+    same for the fingers, the jaw fully open), and `lower`,
     `upper`, `max_velocity`, `max_acceleration`, `max_jerk` (arrays,
     shape (n,), over the arm joints).
     """
@@ -218,8 +219,12 @@ class ArmModel:
         hand = (self._capsule_frame >= last) & (self._capsule_frame < n_links)
         p0, p1, r = self.capsules_batch(self.q_home[None])
         T_tool_base = np.linalg.inv(self.forward(self.q_home))
-        to_tool = lambda p: p[0, hand] @ T_tool_base[:3, :3].T + T_tool_base[:3, 3]  # noqa: E731
-        self.hand_capsules = (to_tool(p0), to_tool(p1), r[hand])
+        def to_tool(p: np.ndarray, which: np.ndarray) -> np.ndarray:
+            return p[0, which] @ T_tool_base[:3, :3].T + T_tool_base[:3, 3]
+
+        self.hand_capsules = (to_tool(p0, hand), to_tool(p1, hand), r[hand])
+        jaw = np.arange(len(r)) >= len(r) - self.jaw_capsule_count
+        self.jaw_capsules = (to_tool(p0, jaw), to_tool(p1, jaw), r[jaw])
 
     # --- inverse kinematics ---------------------------------------------------------------
 

@@ -167,6 +167,15 @@ def hand_hits(arm: ArmModel, T_grasp: np.ndarray, body: Body) -> bool:
     return bool(np.any(gap[0] < link_radius))
 
 
+def jaw_lead(arm: ArmModel, direction: np.ndarray) -> float:
+    """How far the open jaw's fingers reach beyond the tool point along ``direction`` (unit,
+    frame tool), metres, their thickness included."""
+    p0, p1, radius = arm.jaw_capsules
+    if not len(radius):
+        return 0.0
+    return float((np.maximum(p0 @ direction, p1 @ direction) + radius).max())
+
+
 def segments_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Smallest distance from each segment p0-p1 (arrays, shape (m, k, 3)) to the points
     ``c`` (shape (m, s, 3)) of the same row: array, shape (m, k), metres."""

@@ -29,7 +29,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, clearance, collides, hand_hits
+from wavegrasp.planner.collision import Body, clearance, collides, hand_hits, jaw_lead
 from wavegrasp.planner.timing import (
     Limits,
     least_duration,
@@ -51,7 +51,8 @@ class PlannerConfig(BaseModel):
     alpha_m: float = Field(0.08, description="P_init's distance from the object's surface")
     waypoint_count: int = 3
     beta_m: float = 0.02
-    final_m: float = 0.05
+    final_m: float = Field(0.05, description="the final move's least length; longer where the "
+                           "open fingers would otherwise start it astride the object")
     jaw_margin_m: float = Field(0.01, description="the jaw's preshape: this wider than the "
                                 "object on each side")
     clearance_m: float = Field(0.01, description="arm to object before the final move (the "
@@ -263,7 +264,6 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     here = body.at(t_g)
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     T_base_world = np.linalg.inv(T_world_base)
-    p_f = T_grasp[:3, 3]
     q_f = arm.inverse(T_base_world @ T_grasp, q_now, max_iter=cfg.ik_max_iter,
                       restarts=cfg.ik_restarts)
     if q_f is None:
@@ -282,10 +282,34 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
     move = final_move(T_grasp[:3, :3], d)
+    # The paper's final move first. From its start the open fingers are often astride the
+    # object already, where the approach's clearance leaves a jaw only a little wider than
+    # the object no room; then a final move long enough to start with them clear of it
+    # (measured: an 11 cm bottle, 0 plans in 30 predictions). Not always: it takes longer.
+    clear_m = here.extent(move) + jaw_lead(arm, T_grasp[:3, :3].T @ move) + cfg.clearance_m
+    result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, cfg.final_m, arm,
+                       T_world_base, q_now, body, cfg)
+    if clear_m > cfg.final_m and not isinstance(result, Plan) and result[0] == "collision":
+        result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, clear_m, arm,
+                           T_world_base, q_now, body, cfg)
+    return result
+
+
+def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
+              q_f: np.ndarray, n_paper: np.ndarray, d: np.ndarray, move: np.ndarray,
+              final_m: float, arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
+              body: Body, cfg: PlannerConfig) -> Plan | tuple[str, float]:
+    """:func:`_candidate`'s grasp pose with the arm at ``q_f`` there, approached along the
+    final ``move`` (unit, world) of ``final_m`` metres: the timed, checked plan or why not."""
+    here = body.at(t_g)
+    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+    T_base_world = np.linalg.inv(T_world_base)
+    p_f = T_grasp[:3, 3]
+    t_start = now + cfg.start_delay_s
     solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
         points = waypoints(p_f, n, d, cfg.alpha_m + here.extent(n), cfg.waypoint_count,
-                           cfg.beta_m, cfg.final_m, move)
+                           cfg.beta_m, final_m, move)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
         if qs is not None:
