@@ -39,10 +39,6 @@ from wavegrasp.planner.timing import (
     spline_path,
 )
 
-#: A finger's thickness along the final move, metres: the fingers are either side of the
-#: object once the tool point is this much nearer than the object's extent.
-FINGER_M = 0.015
-
 
 class PlannerConfig(BaseModel):
     grasp_time: str = Field("slowest", description="'slowest' or 'period' (the paper's Δt = T)")
@@ -349,7 +345,11 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     x = T_grasp[:3, 0]
     width = 2.0 * here.extent(x)
     rel = path.at(np.minimum(times, path.times_s[-1])) - tool  # object from the tool point
-    astride = (times >= final_from) & (np.abs(rel @ move) <= here.extent(move) + FINGER_M)
+    # The fingers span from their roots behind the tool point to their tips ahead of it: a
+    # fixed finger's thickness missed the tips reaching round the object 6 cm ahead.
+    along, u = rel @ move, T_grasp[:3, :3].T @ move
+    astride = ((times >= final_from) & (along <= here.extent(move) + jaw_lead(arm, u))
+               & (along >= -here.extent(move) - jaw_lead(arm, -u)))
     sweep = float(np.abs(rel[astride] @ x).max()) if astride.any() else 0.0
     if width + 2.0 * sweep > arm.jaw_max_opening_m:
         return "object would hit a finger", 0.0
