@@ -257,7 +257,6 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
                ) -> Plan | tuple[str, float]:
     """One grasp pose at one time: the plan, or why not and (if it cannot be timed) how long
     the arm needs from ``now + start_delay_s`` to the grasp."""
-    here = body.at(t_g)
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     T_base_world = np.linalg.inv(T_world_base)
     q_f = arm.inverse(T_base_world @ T_grasp, q_now, max_iter=cfg.ik_max_iter,
@@ -278,34 +277,41 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     if t_start + direct.duration > t_g:
         return "cannot be timed", direct.duration
     move = final_move(T_grasp[:3, :3], d)
-    # The paper's final move first. From its start the open fingers are often astride the
-    # object already, where the approach's clearance leaves a jaw only a little wider than
-    # the object no room; then a final move long enough to start with them clear of it
-    # (measured: an 11 cm bottle, 0 plans in 30 predictions). Not always: it takes longer.
-    clear_m = here.extent(move) + jaw_lead(arm, T_grasp[:3, :3].T @ move) + cfg.clearance_m
-    result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, cfg.final_m, arm,
+    # The paper's approach first: from P_init α beyond the object's surface and a final
+    # move of 5 cm, both measured from the tool point, while the open fingers reach 6 cm
+    # ahead of it: waiting at P_init their tips are 2 cm from the object, and when the final
+    # move starts they are often astride it already, where a jaw only a little wider than
+    # the object leaves no room for the approach's clearance. Then, if that collides, one
+    # measured from the fingers (longer, so not always: measured on an 11 cm bottle, 0 plans
+    # in 30 predictions).
+    result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, False, arm,
                        T_world_base, q_now, body, cfg)
-    if clear_m > cfg.final_m and not isinstance(result, Plan) and result[0] == "collision":
-        result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, clear_m, arm,
+    if not isinstance(result, Plan) and result[0] == "collision":
+        result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, True, arm,
                            T_world_base, q_now, body, cfg)
     return result
 
 
 def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
               q_f: np.ndarray, n_paper: np.ndarray, d: np.ndarray, move: np.ndarray,
-              final_m: float, arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
+              clear: bool, arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
               body: Body, cfg: PlannerConfig) -> Plan | tuple[str, float]:
     """:func:`_candidate`'s grasp pose with the arm at ``q_f`` there, approached along the
-    final ``move`` (unit, world) of ``final_m`` metres: the timed, checked plan or why not."""
+    final ``move`` (unit, world): the timed, checked plan or why not. ``clear``: α and the
+    final move's start measured from the open fingers, not the tool point."""
     here = body.at(t_g)
+    R = T_grasp[:3, :3]
+    final_m = cfg.final_m
+    if clear:
+        final_m = max(final_m, here.extent(move) + jaw_lead(arm, R.T @ move) + cfg.clearance_m)
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     T_base_world = np.linalg.inv(T_world_base)
     p_f = T_grasp[:3, 3]
     t_start = now + cfg.start_delay_s
     solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
-        points = waypoints(p_f, n, d, cfg.alpha_m + here.extent(n), cfg.waypoint_count,
-                           cfg.beta_m, final_m, move)
+        alpha = cfg.alpha_m + here.extent(n) + (jaw_lead(arm, R.T @ -n) if clear else 0.0)
+        points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, final_m, move)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
         if qs is not None:
