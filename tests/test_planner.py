@@ -429,3 +429,30 @@ def test_a_cylinder_nearly_as_wide_as_the_open_jaw_is_met_with_the_fingers_clear
         before = plan.times < plan.t_final
         assert clearance(arm, T, plan.q[before][-1], path(now).at(plan.times[before][-1]),
                          wide) >= cfg.clearance_m
+
+
+def test_a_thin_box_is_waited_for_with_the_fingertips_clear_of_it(arm: ArmModel) -> None:
+    """A 4.5 x 3.6 x 19 cm box swinging 5 cm, the arm to its side: waiting at P_init with α
+    measured from the tool point, the fingertips (6 cm ahead of it) were 2 cm from the box
+    and at 2 phases of 11 every candidate collided or came too late; measured from the
+    fingertips, every phase gets a plan."""
+    scenario = paper_scenario(2, "buoy", mount=mount_at(np.array([0.0, 0.0, 0.465]), 0.55,
+                                                        110.0, 0.0, 78.0))
+    position, quat = arm_mount(scenario)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
+    omega = 2 * np.pi / 1.53
+
+    def path(now: float) -> PredictedPath:
+        t = now + np.arange(40) * 0.1
+        p = np.array([0.0, 0.0, 0.465]) + np.column_stack(
+            [0.024 * np.sin(omega * t), 0.003 * np.sin(omega * t), -0.0015 * np.cos(2 * omega * t)])
+        return PredictedPath(t, p, np.full(40, 0.002), 2 * np.pi / omega)
+
+    side = np.array([-0.85, 0.53, 0.0]) / np.linalg.norm([-0.85, 0.53])
+    box = Body(0.018, 0.094, np.array([0.0, 0.0, 1.0]), side=side, half_breadth=0.0445)
+    q_standby = standby_pose(arm, T, path(0.0).positions, box)
+    plans = [plan_grasp(path(now), now, arm, T, q_standby, box, PlannerConfig())
+             for now in 10.0 + np.arange(11) * 1.53 / 11]
+    assert all(isinstance(p, Plan) for p in plans), [dict(p) for p in plans
+                                                     if not isinstance(p, Plan)]
