@@ -398,26 +398,40 @@ def test_a_prediction_too_uncertain_to_grasp_on_is_not_planned(
 
 
 
+def mounted(rest: np.ndarray, distance: float, bearing: float, rise: float,
+            yaw: float) -> np.ndarray:
+    """T_world_base (4, 4) of an arm mounted as :func:`mount_at` puts it."""
+    position, quat = arm_mount(paper_scenario(2, "buoy", mount=mount_at(rest, distance,
+                                                                        bearing, rise, yaw)))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
+    return T
+
+
+def swinging(rest: np.ndarray, sway: tuple[float, float, float], period: float,
+             samples: int):  # noqa: ANN201 (a function of the planning time)
+    """Predictions (every 0.1 s, ``samples`` of them, sigma 2 mm) of an object swaying
+    ``sway`` (x and y amplitudes, and the rise twice a swing), metres, about ``rest``."""
+    omega = 2 * np.pi / period
+
+    def path(now: float) -> PredictedPath:
+        t = now + np.arange(samples) * 0.1
+        p = rest + np.column_stack([sway[0] * np.sin(omega * t), sway[1] * np.sin(omega * t),
+                                    -sway[2] * np.cos(2 * omega * t)])
+        return PredictedPath(t, p, np.full(samples, 0.002), period)
+
+    return path
+
+
 def test_a_cylinder_nearly_as_wide_as_the_open_jaw_is_met_with_the_fingers_clear_of_it(
         arm: ArmModel) -> None:
     """An 11 cm bottle in a 14 cm jaw, the arm below it and to its side: from the paper's
     final move, 5 cm out, the open fingers are astride it, a centimetre either side, and
     every approach came too near (0 plans of 11); a final move that starts with them clear
     of it keeps the approach's clearance."""
-    base = paper_scenario(2, "bottle")
-    scenario = paper_scenario(2, "bottle", mount=mount_at(base.rest, 0.54, -80.0, -0.25,
-                                                          -20.0))
-    position, quat = arm_mount(scenario)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
-    omega = 2 * np.pi / 2.2
-
-    def path(now: float) -> PredictedPath:
-        t = now + np.arange(35) * 0.1
-        p = np.asarray(scenario.rest) + np.column_stack(
-            [0.04 * np.sin(omega * t), 0 * t, -0.003 * np.cos(2 * omega * t)])
-        return PredictedPath(t, p, np.full(35, 0.002), 2 * np.pi / omega)
-
+    rest = np.asarray(paper_scenario(2, "bottle").rest)
+    T = mounted(rest, 0.54, -80.0, -0.25, -20.0)
+    path = swinging(rest, (0.04, 0.0, 0.003), 2.2, 35)
     wide = Body(0.056, 0.088, np.array([0.0, 0.0, 1.0]))
     q_standby = standby_pose(arm, T, path(0.0).positions, wide)
     cfg = PlannerConfig()
@@ -436,19 +450,9 @@ def test_a_thin_box_is_waited_for_with_the_fingertips_clear_of_it(arm: ArmModel)
     measured from the tool point, the fingertips (6 cm ahead of it) were 2 cm from the box
     and at 2 phases of 11 every candidate collided or came too late; measured from the
     fingertips, every phase gets a plan."""
-    scenario = paper_scenario(2, "buoy", mount=mount_at(np.array([0.0, 0.0, 0.465]), 0.55,
-                                                        110.0, 0.0, 78.0))
-    position, quat = arm_mount(scenario)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
-    omega = 2 * np.pi / 1.53
-
-    def path(now: float) -> PredictedPath:
-        t = now + np.arange(40) * 0.1
-        p = np.array([0.0, 0.0, 0.465]) + np.column_stack(
-            [0.024 * np.sin(omega * t), 0.003 * np.sin(omega * t), -0.0015 * np.cos(2 * omega * t)])
-        return PredictedPath(t, p, np.full(40, 0.002), 2 * np.pi / omega)
-
+    rest = np.array([0.0, 0.0, 0.465])
+    T = mounted(rest, 0.55, 110.0, 0.0, 78.0)
+    path = swinging(rest, (0.024, 0.003, 0.0015), 1.53, 40)
     side = np.array([-0.85, 0.53, 0.0]) / np.linalg.norm([-0.85, 0.53])
     box = Body(0.018, 0.094, np.array([0.0, 0.0, 1.0]), side=side, half_breadth=0.0445)
     q_standby = standby_pose(arm, T, path(0.0).positions, box)
