@@ -282,8 +282,8 @@ def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     # ahead of it: waiting at P_init their tips are 2 cm from the object, and when the final
     # move starts they are often astride it already, where a jaw only a little wider than
     # the object leaves no room for the approach's clearance. Then, if that collides, one
-    # measured from the fingers (longer, so not always: measured on an 11 cm bottle, 0 plans
-    # in 30 predictions).
+    # measured from the fingers (not always: it is longer). An 11 cm bottle below the arm
+    # (tests/test_planner.py): 0 of 11 phases planned before, 8 after.
     result = _approach(path, now, t_g, T_grasp, q_f, n_paper, d, move, False, arm,
                        T_world_base, q_now, body, cfg)
     if not isinstance(result, Plan) and result[0] == "collision":
