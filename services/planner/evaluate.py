@@ -15,7 +15,8 @@ from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_pose
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.standby import standby_pose
 from wavegrasp.predictor.models import make_predictor
 from wavegrasp.recording_io.ros_msgs import decode_pose
 
@@ -37,7 +38,7 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
           cfg: PlannerConfig | None = None) -> PlannerScore:
     """Feed perception's centroids to the default predictor and plan on every warm forecast
     after ``warmup_s``, from the arm's standby pose facing where the object was seen during
-    the warm-up (:func:`~wavegrasp.planner.plan.standby_pose`, where the arm waits between
+    the warm-up (:func:`~wavegrasp.planner.standby.standby_pose`, where the arm waits between
     attempts). ``body``: the object as perception reports it."""
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")

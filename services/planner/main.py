@@ -25,7 +25,8 @@ from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, Turns
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, standby_move, standby_pose
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.standby import standby_move, standby_pose
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
@@ -55,7 +56,9 @@ class PlannerSettings(Settings):
     arm_urdf: str | None = None
     execution_hold_s: float = 1.5
     standby_every_s: float = Field(2.0, gt=0.0, description="the standby pose is solved "
-                                   "again after this much recording time")
+                                   "again after this much recording time, if the object's sway "
+                                   "or size has changed since by more than standby_moved_m")
+    standby_moved_m: float = Field(0.02, ge=0.0, description="see standby_every_s")
 
 
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
@@ -105,7 +108,8 @@ class PlannerService(Service):
         # The end of the standby move asked for last: no plan before it (the arm will not be
         # where it is), and no other standby move until a second after it.
         self._standby_end_ns = -STANDBY_AGAIN_NS
-        self._standby: tuple[int, bytes, np.ndarray] | None = None  # (solved at, mount, q)
+        #: (solved at, mount, the sway and size it was solved for, q)
+        self._standby: tuple[int, bytes, np.ndarray, np.ndarray] | None = None
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
@@ -259,17 +263,21 @@ class PlannerService(Service):
 
     def standby(self, T_world_base: np.ndarray, stamp_ns: int) -> np.ndarray:
         """The standby pose (:func:`standby_pose`), solved again once ``standby_every_s`` of
-        recording time has passed or the mount moved: where the facing pose touches the
-        object it takes a dozen inverse kinematics (0.4 s measured), and where the object
-        sways (and its size, as perception learns it) changes over seconds, not frames."""
+        recording time has passed and the object's sway (where it is, how far it goes) or
+        its size changed by ``standby_moved_m``, or the mount moved: it takes a few dozen
+        inverse kinematics (about 0.5 s measured), and where the object sways changes over
+        seconds, not frames."""
         key = T_world_base.tobytes()
+        seen = np.array(self.seen).reshape(-1, 3)
+        sway = np.concatenate([seen.mean(axis=0), np.ptp(seen, axis=0), [self.body.half_size]]
+                              ) if len(seen) else np.zeros(7)
         cached = self._standby
-        if cached is None or cached[1] != key or (
-                stamp_ns - cached[0] >= self.cfg.standby_every_s * 1e9 or stamp_ns < cached[0]):
-            q = standby_pose(self.arm, T_world_base, np.array(self.seen).reshape(-1, 3),
-                             self.body)
-            self._standby = cached = (stamp_ns, key, q)
-        return cached[2].copy()
+        if cached is None or cached[1] != key or stamp_ns < cached[0] or (
+                stamp_ns - cached[0] >= self.cfg.standby_every_s * 1e9
+                and np.abs(sway - cached[2]).max() > self.cfg.standby_moved_m):
+            q = standby_pose(self.arm, T_world_base, seen, self.body)
+            self._standby = cached = (stamp_ns, key, sway, q)
+        return cached[3].copy()
 
     def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                     T_world_base: np.ndarray) -> None:

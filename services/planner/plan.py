@@ -29,7 +29,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, clearance, collides, hand_hits, jaw_lead
+from wavegrasp.planner.collision import Body, collides, hand_hits, jaw_lead
 from wavegrasp.planner.timing import (
     Limits,
     least_duration,
@@ -173,82 +173,6 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not rejected:
         rejected["no grasp time in the prediction"] += 1
     return rejected
-
-
-def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
-                 margin_m: float = 0.08) -> np.ndarray:
-    """Where the arm waits between attempts, radians, shape (n,): its home pose turned to
-    face the object, so an arm mounted at any yaw starts every approach from the object's
-    side. ``seen`` : array, shape (k, 3), metres, world: where the object's centroid has been
-    lately (none yet: the home pose). Where the arm facing it would touch the object at one
-    of those places, as it does for an object near the shoulder, a ready pose ``margin_m``
-    beyond the object's sway with the tool pointing at it, of those clear of the object the
-    one nearest (in time, joint by joint) to facing it: an object near the first joint's
-    limits is otherwise waited for on the far side of them (measured: grasps 5 rad away, 4.3
-    s to reach); failing that, whichever of the two keeps farthest from the object."""
-    seen = np.asarray(seen, dtype=float).reshape(-1, 3)
-    seen = seen[~np.isnan(seen).any(axis=1)]
-    if not len(seen):
-        return arm.q_home.copy()
-    T_base_world = np.linalg.inv(T_world_base)
-    seen = seen @ T_base_world[:3, :3].T + T_base_world[:3, 3]
-    c = seen.mean(axis=0)
-    sway = float(np.linalg.norm(seen - c, axis=1).max()) + body.half_size
-    facing = arm.facing(c)
-    body = body.rotated(T_base_world[:3, :3])
-
-    def gap(q: np.ndarray) -> float:
-        return clearance(arm, np.eye(4), q, seen, body)
-
-    if gap(facing) > 0.01:
-        return facing
-    clear = []
-    for u, back in _ready_directions(c - arm.shoulder):
-        ready = arm.inverse_position(c - (sway + margin_m + back) * u, u, facing)
-        if ready is not None and gap(ready[0]) > 0.01:
-            clear.append(ready[0])
-    if clear:  # the one the arm turns from quickest towards facing, where grasps are solved
-        return min(clear, key=lambda q: float(np.max(np.abs(q - facing) / arm.max_velocity)))
-    return max([facing, arm.q_home.copy()], key=gap)
-
-
-def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
-                 q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
-                 cfg: PlannerConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
-    ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
-    why not ("already there", "cannot be timed", "collision" with the object on its
-    predicted ``path``). An arm that starts facing away cannot reach a grasp within the
-    prediction's horizon; from its standby it can."""
-    if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
-        return "already there"
-    zero = np.zeros(len(q_now))
-    move = segment(q_now, zero, zero, q_standby, zero,
-                   Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
-    if move is None:
-        return "cannot be timed"
-    times, q, qd = sample_segment(move, now + cfg.start_delay_s, cfg.sample_dt_s)
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
-        return "collision"
-    return times, q, qd
-
-
-def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
-    """Tool directions (unit, frame base_link) to wait in and how much farther back, metres,
-    best first: from the shoulder towards the object (``out``), up to 0.2 m farther back,
-    then level and turned up to 90° either way, then tilted 45° down: an object near the
-    shoulder is reached from its side or from above."""
-    up = np.array([0.0, 0.0, 1.0])
-    level = out - (out @ up) * up
-    level = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array(
-        [1.0, 0.0, 0.0])
-    side = np.cross(up, level)
-    dirs = [(out / np.linalg.norm(out), back) for back in (0.0, 0.1, 0.2)]
-    for tilt in np.radians([0.0, 45.0]):
-        for turn in np.radians([0.0, 45.0, -45.0, 90.0, -90.0]):
-            dirs.append((np.cos(tilt) * (np.cos(turn) * level + np.sin(turn) * side)
-                         - np.sin(tilt) * up, 0.0))
-    return dirs
 
 
 def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,

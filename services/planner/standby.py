@@ -1,0 +1,145 @@
+"""Where the idle arm waits between attempts, and its move there.
+
+Joint values radians, in the arm's own model; ``T_world_base`` places its mount
+``bravo_base_link`` in ``world``; positions metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wavegrasp.arm import ArmModel
+from wavegrasp.planner.approach import PredictedPath, grasp_orientations, perpendicular
+from wavegrasp.planner.collision import Body, clearance, collides
+from wavegrasp.planner.plan import PlannerConfig
+from wavegrasp.planner.timing import Limits, sample_segment, segment
+
+
+def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
+                 margin_m: float = 0.08) -> np.ndarray:
+    """Where the arm waits between attempts, radians, shape (n,): the first of
+    :func:`standby_poses`, or the home pose before the object has been seen."""
+    poses = standby_poses(arm, T_world_base, seen, body, margin_m)
+    return poses[0] if poses else arm.q_home.copy()
+
+
+def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
+                  margin_m: float = 0.08, unsolved_s: float = 4.0) -> list[np.ndarray]:
+    """Poses the arm may wait in between attempts, best first, radians, shape (n,) each.
+    ``seen`` : array, shape (k, 3), metres, world: where the object's centroid has been
+    lately (none yet: no poses).
+
+    The candidates: the home pose turned to face the object, so an arm mounted at any yaw
+    starts every approach from the object's side, and ready poses ``margin_m`` beyond the
+    object's sway with the tool pointing at it. Of those clear of the object, first the ones
+    nearest (in time, joint by joint) to the grasps the planner tries at the sway's ends and
+    middle (:func:`trial_grasps`), solved without leaving their branch of the arm's
+    solutions (one that does not solve counts ``unsolved_s``, the predictions' reach), then
+    the ones nearest to facing it. Facing an object above and behind the shoulder,
+    the arm's elbow is on the branch where none of those grasps is within the joints'
+    limits, and grasps from other seeds are the other branch, seconds away (random-7-003: 0
+    of 12 predictions planned from facing, 12 of 12 from a ready pose). An object near the
+    first joint's limits is otherwise waited for on the far side of them (grasps 5 rad away,
+    4.3 s to reach). With none clear, whichever of facing and home keeps farthest from it."""
+    seen = np.asarray(seen, dtype=float).reshape(-1, 3)
+    seen = seen[~np.isnan(seen).any(axis=1)]
+    if not len(seen):
+        return []
+    T_base_world = np.linalg.inv(T_world_base)
+    grasps = [T_base_world @ T for T in trial_grasps(arm, T_world_base, seen, body)]
+    seen = seen @ T_base_world[:3, :3].T + T_base_world[:3, 3]
+    c = seen.mean(axis=0)
+    sway = float(np.linalg.norm(seen - c, axis=1).max()) + body.half_size
+    facing = arm.facing(c)
+    body = body.rotated(T_base_world[:3, :3])
+
+    def gap(q: np.ndarray) -> float:
+        return clearance(arm, np.eye(4), q, seen, body)
+
+    def solved(q: np.ndarray) -> tuple[int, float]:
+        """How many trial grasps solve from q on its branch, and the mean time (s, at the
+        joints' top speeds) to them, ``unsolved_s`` for one that does not."""
+        times = []
+        for T in grasps:
+            q_f = arm.inverse(T, q, max_iter=40, restarts=-1)
+            times.append(unsolved_s if q_f is None else
+                         float(np.max(np.abs(q_f - q) / arm.max_velocity)))
+        return sum(t < unsolved_s for t in times), float(np.mean(times)) if times else 0.0
+
+    clear = [(facing, solved(facing))] if gap(facing) > 0.01 else []
+    if clear and clear[0][1][0] == len(grasps):  # every grasp solves: spare the search
+        return [facing]
+    for u, back in _ready_directions(c - arm.shoulder):
+        ready = arm.inverse_position(c - (sway + margin_m + back) * u, u, facing)
+        if ready is not None and gap(ready[0]) > 0.01:
+            clear.append((ready[0], solved(ready[0])))
+    if not clear:
+        return [max([facing, arm.q_home.copy()], key=gap)]
+    clear.sort(key=lambda c: (c[1][1], float(np.max(np.abs(c[0] - facing) / arm.max_velocity))))
+    return [q for q, _ in clear]
+
+
+def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
+                 per_place: int = 6) -> list[np.ndarray]:
+    """Grasp poses, shape (4, 4), world, the planner would try first for an object at the
+    ends of its sway (arriving there outwards, where it slows: the grasp times the planner
+    prefers) and in its middle: the first ``per_place`` orientations of
+    :func:`~wavegrasp.planner.approach.grasp_orientations` at each that point away from the
+    shoulder and fit the open jaw. seen : array, shape (k, 3), metres, world."""
+    c = seen.mean(axis=0)
+    dev = seen - c
+    axis = np.linalg.eigh(dev.T @ dev)[1][:, -1]
+    along = dev @ axis
+    shoulder = T_world_base[:3, :3] @ arm.shoulder + T_world_base[:3, 3]
+    poses = []
+    for p, d in ((seen[np.argmax(along)], axis), (seen[np.argmin(along)], -axis), (c, axis)):
+        outwards = (p - shoulder) / np.linalg.norm(p - shoulder)
+        towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
+        kept = [R for R in grasp_orientations(d, body.axis, -perpendicular(d, towards),
+                                              outwards=outwards, faces=body.faces)
+                if R[:, 2] @ outwards >= 0.0
+                and 2.0 * body.extent(R[:, 0]) <= arm.jaw_max_opening_m]
+        for R in kept[:per_place]:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, p
+            poses.append(T)
+    return poses
+
+
+def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
+                 q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
+                 cfg: PlannerConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
+    ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
+    why not ("already there", "cannot be timed", "collision" with the object on its
+    predicted ``path``). An arm that starts facing away cannot reach a grasp within the
+    prediction's horizon; from its standby it can."""
+    if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
+        return "already there"
+    zero = np.zeros(len(q_now))
+    move = segment(q_now, zero, zero, q_standby, zero,
+                   Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
+    if move is None:
+        return "cannot be timed"
+    times, q, qd = sample_segment(move, now + cfg.start_delay_s, cfg.sample_dt_s)
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
+        return "collision"
+    return times, q, qd
+
+
+def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Tool directions (unit, frame base_link) to wait in and how much farther back, metres,
+    best first: from the shoulder towards the object (``out``), up to 0.2 m farther back,
+    then level and turned up to 90° either way, then tilted 45° down: an object near the
+    shoulder is reached from its side or from above."""
+    up = np.array([0.0, 0.0, 1.0])
+    level = out - (out @ up) * up
+    level = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array(
+        [1.0, 0.0, 0.0])
+    side = np.cross(up, level)
+    dirs = [(out / np.linalg.norm(out), back) for back in (0.0, 0.1, 0.2)]
+    for tilt in np.radians([0.0, 45.0]):
+        for turn in np.radians([0.0, 45.0, -45.0, 90.0, -90.0]):
+            dirs.append((np.cos(tilt) * (np.cos(turn) * level + np.sin(turn) * side)
+                         - np.sin(tilt) * up, 0.0))
+    return dirs
