@@ -26,7 +26,7 @@ from wavegrasp.checks import StampOrder
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, Turns
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
-from wavegrasp.planner.standby import standby_move, standby_pose
+from wavegrasp.planner.standby import standby_move, standby_poses
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
@@ -108,8 +108,11 @@ class PlannerService(Service):
         # The end of the standby move asked for last: no plan before it (the arm will not be
         # where it is), and no other standby move until a second after it.
         self._standby_end_ns = -STANDBY_AGAIN_NS
-        #: (solved at, mount, the sway and size it was solved for, q)
-        self._standby: tuple[int, bytes, np.ndarray, np.ndarray] | None = None
+        #: (solved at, mount, the sway and size it was solved for, the standby poses)
+        self._standby: tuple[int, bytes, np.ndarray, list[np.ndarray]] | None = None
+        self._choice = 0  # which of the standby poses the arm waits in
+        self._probe = 0  # the next of them to plan from while none comes from the chosen one
+        self._failing_since_ns: int | None = None  # no plan from the idle arm at standby since
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
@@ -233,6 +236,7 @@ class PlannerService(Service):
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
         if not msg.warm or msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
+            self._failing_since_ns = None
             return
         if msg.header.stamp_ns < self._standby_end_ns:
             # Until the arm has started the move it asked for it still looks idle; a plan
@@ -255,6 +259,7 @@ class PlannerService(Service):
             self.ask_standby(msg, d, path, T_world_base)
             return
         self.counters["plans"] += 1
+        self._failing_since_ns = None
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
                           self.standby(T_world_base, msg.header.stamp_ns))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
@@ -262,7 +267,8 @@ class PlannerService(Service):
 
 
     def standby(self, T_world_base: np.ndarray, stamp_ns: int) -> np.ndarray:
-        """The standby pose (:func:`standby_pose`), solved again once ``standby_every_s`` of
+        """The standby pose: the chosen one of :func:`standby_poses` (the first, until
+        :meth:`probe_standby` finds a better one), solved again once ``standby_every_s`` of
         recording time has passed and the object's sway (where it is, how far it goes) or
         its size changed by ``standby_moved_m``, or the mount moved: it takes a few dozen
         inverse kinematics (about 0.5 s measured), and where the object sways changes over
@@ -275,9 +281,40 @@ class PlannerService(Service):
         if cached is None or cached[1] != key or stamp_ns < cached[0] or (
                 stamp_ns - cached[0] >= self.cfg.standby_every_s * 1e9
                 and np.abs(sway - cached[2]).max() > self.cfg.standby_moved_m):
-            q = standby_pose(self.arm, T_world_base, seen, self.body)
-            self._standby = cached = (stamp_ns, key, sway, q)
-        return cached[3].copy()
+            poses = standby_poses(self.arm, T_world_base, seen, self.body)
+            self._standby = cached = (stamp_ns, key, sway, poses or [self.arm.q_home.copy()])
+            self._choice, self._probe, self._failing_since_ns = 0, 0, None
+        return cached[3][self._choice].copy()
+
+    def probe_standby(self, msg: MotionPrediction, path: PredictedPath,
+                      T_world_base: np.ndarray) -> bool:
+        """The idle arm waits at its standby and nothing has been planned from there for a
+        whole period of the motion (every phase of a swing tried): plan once from the next
+        of the other standby poses, and if that plans, wait there instead. Whether grasps
+        plan from a pose is only known by planning them (the ranking of
+        :func:`standby_poses` guesses it from the grasps' joints alone, and a 13 cm sphere
+        in the 14 cm jaw plans only head-on along its motion: random-7-034, 0 of 8
+        predictions planned from the first pose, 4 of 8 from the fourth). One plan per
+        prediction at most. True if the standby changed."""
+        now_ns = msg.header.stamp_ns
+        if self._failing_since_ns is None or now_ns < self._failing_since_ns:
+            self._failing_since_ns = now_ns
+        poses = self._standby[3] if self._standby is not None else []
+        if len(poses) < 2 or now_ns - self._failing_since_ns < path.period_s * 1e9:
+            return False
+        self._probe = self._probe % len(poses)
+        if self._probe == self._choice:
+            self._probe = (self._probe + 1) % len(poses)
+        j = self._probe
+        self._probe += 1
+        self.counters["standby probes"] += 1
+        result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, poses[j],
+                            self.turning(path.period_s), self.config)
+        if not isinstance(result, Plan):
+            return False
+        self.counters["standby changed"] += 1
+        self._choice, self._failing_since_ns = j, None
+        return True
 
     def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                     T_world_base: np.ndarray) -> None:
@@ -289,6 +326,10 @@ class PlannerService(Service):
         move = standby_move(self.arm, T_world_base, self.q_now,
                             self.standby(T_world_base, msg.header.stamp_ns), path,
                             msg.header.stamp_ns * 1e-9, self.body, self.config)
+        if move == "already there" and self.probe_standby(msg, path, T_world_base):
+            move = standby_move(self.arm, T_world_base, self.q_now,
+                                self.standby(T_world_base, msg.header.stamp_ns), path,
+                                msg.header.stamp_ns * 1e-9, self.body, self.config)
         if isinstance(move, str):
             if move != "already there":
                 self.counters[f"standby move: {move}"] += 1
