@@ -23,7 +23,7 @@ from wavegrasp.planner.approach import (
 from wavegrasp.planner.collision import Body, Turns, clearance, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
-from wavegrasp.planner.standby import standby_pose
+from wavegrasp.planner.standby import standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
 from wavegrasp.runtime.trace import new_header
@@ -239,6 +239,15 @@ def test_the_self_check_plans_at_start_and_says_when_it_cannot(
         service.bus.close()
 
 
+def delivered(path: PredictedPath, now: float) -> tuple[MotionPrediction, Delivery]:
+    """``path`` as the predictor's message stamped ``now`` (s), and its delivery."""
+    samples = [PredictionSample(t_ns=int(round(t * 1e9)), x=p[0], y=p[1], z=p[2], sigma=s)
+               for t, p, s in zip(path.times_s, path.positions, path.sigma, strict=True)]
+    msg = MotionPrediction(header=new_header("predictor", 0, int(now * 1e9)), model="test",
+                           period_s=path.period_s, samples=samples, warm=True)
+    return msg, Delivery("p", b"", "", None, 0, 0)
+
+
 def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
                                                                arm: ArmModel) -> None:
     """A mount turned away from the object: no grasp from the home pose, so the planner asks
@@ -252,15 +261,7 @@ def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
         service.seen.extend(swing(np.arange(0.0, 10.0, 0.1)))
 
         def predict(now: float) -> tuple[MotionPrediction, Delivery]:
-            path = prediction(now)
-            samples = [PredictionSample(t_ns=int(round(t * 1e9)), x=p[0], y=p[1], z=p[2],
-                                        sigma=0.002) for t, p in zip(path.times_s,
-                                                                     path.positions,
-                                                                     strict=True)]
-            msg = MotionPrediction(header=new_header("predictor", 0, int(now * 1e9)),
-                                   model="test", period_s=path.period_s, samples=samples,
-                                   warm=True)
-            return msg, Delivery("p", b"", "", None, 0, 0)
+            return delivered(prediction(now), now)
 
         service.plan(*predict(10.0))
         assert service.counters["standby moves"] == 1, dict(service.counters)
@@ -467,3 +468,48 @@ def test_a_thin_box_is_waited_for_with_the_fingertips_clear_of_it(arm: ArmModel)
              for now in 10.0 + np.arange(11) * 1.53 / 11]
     assert all(isinstance(p, Plan) for p in plans), [dict(p) for p in plans
                                                      if not isinstance(p, Plan)]
+
+
+def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
+        router: Router, arm: ArmModel) -> None:
+    """A 13 cm sphere in the 14 cm jaw swinging 23 cm (random-7-034): of the standby poses,
+    some plan at every phase and some at none. Waiting in one of the latter, the mirror
+    image of one of the former, the planner tries the others only once a whole period has
+    gone by without a plan, one plan per prediction, and has the arm move to the one that
+    plans, by way of another (straight there, the first joint turns 3 rad through the
+    object)."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        rest = np.array([0.0, 0.0, 0.68])
+        T = mounted(rest, 0.548, -178.5, -0.379, 18.0)
+        path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
+        service.tf.update([("world", arm.base_link, T)])
+        service.seen.extend(np.vstack([path(0.0).positions, path(4.0).positions]))
+        service.body = Body(0.066)
+        poses = standby_poses(arm, T, np.array(service.seen), service.body)
+        planned = [sum(isinstance(plan_grasp(path(now), now, arm, T, q, service.body,
+                                             PlannerConfig()), Plan)
+                       for now in 10.0 + np.arange(3) * 1.82 / 3) for q in poses]
+        bad = poses[planned.index(0)]
+        good = poses[planned.index(3)]  # of its mirror image, turned 3 rad through the object
+        service.standby(T, 0)
+        others = [q for q in poses if q is not bad and q is not good]
+        service._standby = (*service._standby[:3], [bad, good, *others])
+        service.q_now = bad.copy()
+        now = 10.0
+        while not service.counters["standby changed"] and now < 10.0 + 4 * 1.82:
+            service.plan(*delivered(path(now), now))
+            now += 0.25
+        assert service.counters["plans"] == 0, told(service)
+        assert service.counters["standby changed"] == 1, told(service)
+        assert service.counters["standby probes"] <= service.counters["no plan"]
+        assert now - 0.25 >= 10.0 + 1.82  # not before a whole period without a plan
+        assert service.counters["standby moves"] == 1, told(service)
+        np.testing.assert_allclose(service.standby(T, int(now * 1e9)), good)
+    finally:
+        service.bus.close()
+
+
+def told(service: PlannerService) -> dict[str, int]:
+    """The planner's counters but its candidates' rejections."""
+    return {k: v for k, v in service.counters.items() if not k.startswith("rejected")}

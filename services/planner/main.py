@@ -286,22 +286,30 @@ class PlannerService(Service):
             self._choice, self._probe, self._failing_since_ns = 0, 0, None
         return cached[3][self._choice].copy()
 
+    def other_standbys(self, j: int) -> list[np.ndarray]:
+        """The standby poses but the ``j``-th: clear of the object, so a move may stop at
+        one on its way to the ``j``-th."""
+        poses = self._standby[3] if self._standby is not None else []
+        return [q for k, q in enumerate(poses) if k != j]
+
     def probe_standby(self, msg: MotionPrediction, path: PredictedPath,
-                      T_world_base: np.ndarray) -> bool:
-        """The idle arm waits at its standby and nothing has been planned from there for a
-        whole period of the motion (every phase of a swing tried): plan once from the next
-        of the other standby poses, and if that plans, wait there instead. Whether grasps
-        plan from a pose is only known by planning them (the ranking of
+                      T_world_base: np.ndarray) -> tuple[np.ndarray, ...] | None:
+        """Nothing has been planned from where the idle arm is, at its standby or unable to
+        move there, for a whole period of the motion (every phase of a swing tried): plan
+        once from the next of the other standby poses, and if that plans and the arm can move
+        there now clear of the object, wait there instead: returns that move
+        (:func:`standby_move`). Whether
+        grasps plan from a pose is only known by planning them (the ranking of
         :func:`standby_poses` guesses it from the grasps' joints alone, and a 13 cm sphere
         in the 14 cm jaw plans only head-on along its motion: random-7-034, 0 of 8
         predictions planned from the first pose, 4 of 8 from the fourth). One plan per
-        prediction at most. True if the standby changed."""
+        prediction at most."""
         now_ns = msg.header.stamp_ns
         if self._failing_since_ns is None or now_ns < self._failing_since_ns:
             self._failing_since_ns = now_ns
         poses = self._standby[3] if self._standby is not None else []
         if len(poses) < 2 or now_ns - self._failing_since_ns < path.period_s * 1e9:
-            return False
+            return None
         self._probe = self._probe % len(poses)
         if self._probe == self._choice:
             self._probe = (self._probe + 1) % len(poses)
@@ -311,10 +319,15 @@ class PlannerService(Service):
         result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, poses[j],
                             self.turning(path.period_s), self.config)
         if not isinstance(result, Plan):
-            return False
+            return None
+        move = standby_move(self.arm, T_world_base, self.q_now, poses[j], path, now_ns * 1e-9,
+                            self.body, self.config, via=self.other_standbys(j))
+        if isinstance(move, str):  # tried again when its turn comes round
+            self.counters[f"standby probe: move {move}"] += 1
+            return None
         self.counters["standby changed"] += 1
         self._choice, self._failing_since_ns = j, None
-        return True
+        return move
 
     def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                     T_world_base: np.ndarray) -> None:
@@ -323,13 +336,12 @@ class PlannerService(Service):
         if len(self.seen) < self.seen.maxlen // 2 or (
                 msg.header.stamp_ns < self._standby_end_ns + STANDBY_AGAIN_NS):
             return
-        move = standby_move(self.arm, T_world_base, self.q_now,
-                            self.standby(T_world_base, msg.header.stamp_ns), path,
-                            msg.header.stamp_ns * 1e-9, self.body, self.config)
-        if move == "already there" and self.probe_standby(msg, path, T_world_base):
-            move = standby_move(self.arm, T_world_base, self.q_now,
-                                self.standby(T_world_base, msg.header.stamp_ns), path,
-                                msg.header.stamp_ns * 1e-9, self.body, self.config)
+        q_standby = self.standby(T_world_base, msg.header.stamp_ns)
+        move = standby_move(self.arm, T_world_base, self.q_now, q_standby, path,
+                            msg.header.stamp_ns * 1e-9, self.body, self.config,
+                            via=self.other_standbys(self._choice))
+        if isinstance(move, str):  # there already, or it cannot get there now
+            move = self.probe_standby(msg, path, T_world_base) or move
         if isinstance(move, str):
             if move != "already there":
                 self.counters[f"standby move: {move}"] += 1

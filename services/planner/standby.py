@@ -108,23 +108,33 @@ def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
 
 def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
                  q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
-                 cfg: PlannerConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+                 cfg: PlannerConfig, via: list[np.ndarray] | tuple = ()
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
     ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
     why not ("already there", "cannot be timed", "collision" with the object on its
     predicted ``path``). An arm that starts facing away cannot reach a grasp within the
-    prediction's horizon; from its standby it can."""
+    prediction's horizon; from its standby it can. Where the direct move would sweep
+    through the object, it stops on the way at the first of ``via`` (poses, radians, clear
+    of it) that keeps the whole move clear: from one standby to its mirror image on the
+    object's far side the first joint turns 3 rad through the object (random-7-034)."""
     if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
         return "already there"
     zero = np.zeros(len(q_now))
-    move = segment(q_now, zero, zero, q_standby, zero,
-                   Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
-    if move is None:
-        return "cannot be timed"
-    times, q, qd = sample_segment(move, now + cfg.start_delay_s, cfg.sample_dt_s)
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
-        return "collision"
-    return times, q, qd
+    limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+    for legs in [[q_now, q_standby]] + [[q_now, v, q_standby] for v in via]:
+        start, parts = now + cfg.start_delay_s, []
+        for a, b in zip(legs[:-1], legs[1:], strict=True):
+            move = segment(a, zero, zero, b, zero, limits)
+            if move is None:
+                return "cannot be timed"
+            times, q, qd = sample_segment(move, start, cfg.sample_dt_s)
+            parts.append((times, q, qd) if not parts else (times[1:], q[1:], qd[1:]))
+            start = times[-1]
+        times, q, qd = (np.concatenate(x) for x in zip(*parts, strict=True))
+        if not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
+            return times, q, qd
+    return "collision"
 
 
 def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
