@@ -112,7 +112,7 @@ class PlannerService(Service):
         self._standby: tuple[int, bytes, np.ndarray, list[np.ndarray]] | None = None
         self._choice = 0  # which of the standby poses the arm waits in
         self._probe = 0  # the next of them to plan from while none comes from the chosen one
-        self._failing_since_ns: int | None = None  # no plan from the idle arm at standby since
+        self._failing_since_ns: int | None = None  # no plan from the idle arm since
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
@@ -298,12 +298,11 @@ class PlannerService(Service):
         move there, for a whole period of the motion (every phase of a swing tried): plan
         once from the next of the other standby poses, and if that plans and the arm can move
         there now clear of the object, wait there instead: returns that move
-        (:func:`standby_move`). Whether
-        grasps plan from a pose is only known by planning them (the ranking of
-        :func:`standby_poses` guesses it from the grasps' joints alone, and a 13 cm sphere
-        in the 14 cm jaw plans only head-on along its motion: random-7-034, 0 of 8
-        predictions planned from the first pose, 4 of 8 from the fourth). One plan per
-        prediction at most."""
+        (:func:`standby_move`). Whether grasps plan from a pose is only known by planning
+        them (the ranking of :func:`standby_poses` guesses it from the grasps' joints alone,
+        and a 13 cm sphere in the 14 cm jaw plans only head-on along its motion:
+        random-7-034, 0 of 8 predictions planned from the first pose, 4 of 8 from the
+        fourth). One plan per prediction at most."""
         now_ns = msg.header.stamp_ns
         if self._failing_since_ns is None or now_ns < self._failing_since_ns:
             self._failing_since_ns = now_ns
