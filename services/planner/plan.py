@@ -133,21 +133,16 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         if np.linalg.norm(p_f - shoulder) > arm.reach_m:  # no orientation reaches it: no IK
             rejected["out of reach"] += 1
             continue
-        outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
-        # The paper's side approach from above the object and the arm's side of it first.
-        towards = [0.0, 0.0, 1.0] - 0.5 * outwards
         quickest, tried_here = np.inf, 0
         here = body.at(t_g)  # as it will be turned then
-        for R in grasp_orientations(d, here.axis, -perpendicular(d, towards),
-                                    outwards=outwards, faces=here.faces):
+        outwards, towards, frames = tool_orientations(p_f, d, shoulder, here)
+        for R in frames:
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
-            if R[:, 2] @ outwards < cfg.min_outwards:
-                rejected["points back at the arm"] += 1
-                continue
-            if 2.0 * here.extent(R[:, 0]) > arm.jaw_max_opening_m:
-                rejected["wider than the jaw"] += 1
+            reason = cheap_rejection(arm, R, outwards, here, cfg.min_outwards)
+            if reason:
+                rejected[reason] += 1
                 continue
             if hand_hits(arm, T_grasp, here):
                 rejected["collision"] += 1
@@ -173,6 +168,30 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not rejected:
         rejected["no grasp time in the prediction"] += 1
     return rejected
+
+
+def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body: Body
+                      ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The tool orientations, shape (3, 3), world, to try for a grasp at ``p_f`` (metres,
+    world) of ``body`` arriving along ``d`` (unit), best first (:func:`grasp_orientations`):
+    the paper's side approach from above the object and the arm's side of it first. Returns
+    them with ``outwards`` (unit, the shoulder to P_f) and the ``towards`` they prefer."""
+    outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
+    towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
+    return outwards, towards, grasp_orientations(d, body.axis, -perpendicular(d, towards),
+                                                 outwards=outwards, faces=body.faces)
+
+
+def cheap_rejection(arm: ArmModel, R: np.ndarray, outwards: np.ndarray, body: Body,
+                    min_outwards: float) -> str | None:
+    """Why a tool orientation ``R`` (3, 3) is refused before any inverse kinematics, or
+    None: it points back at the arm, or the object is wider across its jaws than they
+    open."""
+    if R[:, 2] @ outwards < min_outwards:
+        return "points back at the arm"
+    if 2.0 * body.extent(R[:, 0]) > arm.jaw_max_opening_m:
+        return "wider than the jaw"
+    return None
 
 
 def _candidate(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,

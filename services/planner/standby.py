@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.planner.approach import PredictedPath, grasp_orientations, perpendicular
+from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, clearance, collides
-from wavegrasp.planner.plan import PlannerConfig
+from wavegrasp.planner.plan import PlannerConfig, cheap_rejection, tool_orientations
 from wavegrasp.planner.timing import Limits, sample_segment, segment
 
 
@@ -93,12 +93,8 @@ def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
     shoulder = T_world_base[:3, :3] @ arm.shoulder + T_world_base[:3, 3]
     poses = []
     for p, d in ((seen[np.argmax(along)], axis), (seen[np.argmin(along)], -axis), (c, axis)):
-        outwards = (p - shoulder) / np.linalg.norm(p - shoulder)
-        towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
-        kept = [R for R in grasp_orientations(d, body.axis, -perpendicular(d, towards),
-                                              outwards=outwards, faces=body.faces)
-                if R[:, 2] @ outwards >= 0.0
-                and 2.0 * body.extent(R[:, 0]) <= arm.jaw_max_opening_m]
+        outwards, _, frames = tool_orientations(p, d, shoulder, body)
+        kept = [R for R in frames if cheap_rejection(arm, R, outwards, body, 0.0) is None]
         for R in kept[:per_place]:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, p
