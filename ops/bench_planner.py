@@ -35,7 +35,8 @@ def planner_body(track: Track) -> Body:
     if track.last_fit is None:
         return Body(0.05)
     return Body.from_observation(observation(Header(), track.last_fit,
-                                             int(track.last_fit.inliers.sum())))
+                                             int(track.last_fit.inliers.sum()),
+                                             track.last_span))
 
 
 def main(argv: list[str] | None = None) -> int:

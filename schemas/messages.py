@@ -93,6 +93,10 @@ class ObjectObservation(Message):
     axis: Vec3 | None = Field(None, description="unit symmetry axis, world (cylinder)")
     radius_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
     length_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M)
+    axial_offset_m: float | None = Field(None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M,
+                                         description="the middle of its length lies this far "
+                                         "along axis from the centroid (a bottle's neck moves "
+                                         "the centroid towards its body); None: at it")
     fit_rms_m: float | None = Field(None, ge=0.0, description="RMS distance of points to the shape")
     side: Vec3 | None = Field(None, description="a box: unit direction across its axis of its "
                               "thinner extent, world")

@@ -27,7 +27,7 @@ from wavegrasp.planner.standby import standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
 from wavegrasp.runtime.trace import new_header
-from wavegrasp.schemas import MotionPrediction, PredictionSample
+from wavegrasp.schemas import MotionPrediction, ObjectObservation, PredictionSample, Vec3
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 from wavegrasp.wavetank.suite import mount_at
@@ -196,6 +196,39 @@ def test_a_rocking_object_is_expected_turned_as_it_was_whole_periods_before() ->
         assert R @ now == pytest.approx(frame(tilt(t)), abs=0.02)
         assert box.at(t).axis == pytest.approx(frame(tilt(t))[:, 2], abs=0.02)
     assert turns.at(-1.0)[0] == pytest.approx(np.eye(3))  # before the record: as it is
+
+
+def test_a_rocking_bottle_is_checked_turned_as_it_will_be(router: Router) -> None:
+    """A 30 cm bottle, its neck down, rocking 25 degrees either way (random-7-038): the palm
+    met it where it had turned since the plan. Its axis is now turned as it was whole
+    periods before, in the collision check too, with its ends where they are (the neck's
+    end 19 cm from the centroid, the base's 11 cm)."""
+    period, centre = 2.0, np.array([0.0, 0.0, 0.35])
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        for t in np.arange(0.0, 4.0, 0.1):
+            a = np.radians(25.0) * np.sin(2 * np.pi * t / period)
+            axis = np.array([np.sin(a), 0.0, np.cos(a)])
+            msg = ObjectObservation(
+                header=new_header("perception", 0, int(t * 1e9)), centroid=Vec3.of(centre),
+                radius_m=0.037, length_m=0.30, axial_offset_m=-0.04, axis=Vec3.of(axis),
+                shape="cylinder")
+            service.on_observation(msg, Delivery("o", b"", "", None, 0, 0))
+        body = service.turning(period)
+    finally:
+        service.bus.close()
+    assert body.offset == pytest.approx(-0.04) and body.axis[0] == pytest.approx(
+        np.sin(np.radians(25.0) * np.sin(2 * np.pi * 3.9 / period)), abs=1e-6)
+    tilted = np.array([np.sin(np.radians(25.0)), 0.0, np.cos(np.radians(25.0))])
+    neck_end = centre - 0.19 * tilted  # a quarter period on: tilted 25 degrees
+    probe = (neck_end + [0.0, -0.1, 0.0], neck_end + [0.0, 0.1, 0.0])
+    gap = body.gaps(np.array(probe[0])[None, None], np.array(probe[1])[None, None],
+                    centre[None], np.array([4.5]))
+    assert gap[0, 0] < 0.005
+    assert replace(body, turns=None).gaps(np.array(probe[0])[None, None],
+                                          np.array(probe[1])[None, None], centre[None],
+                                          np.array([4.5]))[0, 0] > 0.03
+    assert body.at(4.5).extent(-tilted) == pytest.approx(0.19, abs=0.01)
 
 
 def test_a_link_near_a_boxs_corner_touches_it() -> None:

@@ -62,7 +62,8 @@ class Track:
     stamps_ns : array, shape (n,), camera frames; centres : array, shape (n, 3), metres, world,
     NaN where no centroid was reported; sigmas : shape (n,), metres, the reported uncertainty;
     times_ms, points : per frame; truth_ns, truth : the ground truth, shape (m,) and (m, 3);
-    last_fit : the last frame's shape fit (None if none was fitted).
+    last_fit : the last frame's shape fit (None if none was fitted); last_span : its
+    :attr:`~wavegrasp.perception.pipeline.FrameResult.span`.
     """
 
     path: Path
@@ -74,6 +75,7 @@ class Track:
     truth_ns: np.ndarray
     truth: np.ndarray
     last_fit: ShapeFit | None = None
+    last_span: tuple[float, float] | None = None
 
 
 def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
@@ -82,7 +84,7 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
     tf = StaticTransforms()
     truth: dict[int, np.ndarray] = {}
     stamps, centres, sigmas, times, sizes = [], [], [], [], []
-    last_fit = None
+    last_fit, last_span = None, None
     for m in open_recording(path).messages():
         if m.topic == "/tf_static":
             tf.update(decode_tf(m.cdr))
@@ -99,11 +101,13 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
             stamps.append(cloud.stamp_ns)
             centres.append(np.full(3, np.nan) if result.fit is None else result.fit.centre)
             sigmas.append(np.nan if result.fit is None else result.fit.sigma)
-            last_fit = result.fit or last_fit
+            if result.fit is not None:
+                last_fit, last_span = result.fit, result.span
     truth_ns = np.array(sorted(truth))
     return Track(Path(path), np.array(stamps), np.reshape(centres, (-1, 3)), np.array(sigmas),
                  np.array(times),
-                 np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]), last_fit)
+                 np.array(sizes), truth_ns, np.array([truth[k] for k in truth_ns]), last_fit,
+                 last_span)
 
 
 def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:

@@ -44,6 +44,9 @@ class ShapeFit:
     frame: np.ndarray | None = None  # a box: shape (3, 3), its axes (columns)
     size: np.ndarray | None = None  # a box: shape (3,), metres, its extents along them
     whole: np.ndarray | None = None  # a box: shape (3,), bool, the extent seen whole
+    #: metres along ``axis`` from the volume centre to the middle of its length: a bottle's
+    #: neck moves its centre towards the body, so its ends are not equally far from it
+    offset: float = 0.0
 
     def far_off(self, rms: float, ratio: float) -> bool:
         """Whether a fit ``rms`` metres off its points is far off next to this (learnt) fit:

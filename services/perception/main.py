@@ -60,9 +60,12 @@ class PerceptionSettings(Settings):
                                   "x height) is refused unread: the camera sends ~40k points")
 
 
-def observation(header: Header, fit: ShapeFit, points_used: int) -> ObjectObservation:
+def observation(header: Header, fit: ShapeFit, points_used: int,
+                span: tuple[float, float] | None = None) -> ObjectObservation:
     """The observation of a frame whose object was fitted with ``fit`` from ``points_used``
-    points; a box's also carries its faces across its axis."""
+    points; a box's also carries its faces across its axis. ``span``: where it ends along
+    its axis, metres from its centroid (:func:`~wavegrasp.perception.pipeline.axial_span`;
+    None: the fit's length either side of it)."""
     quality = min(1.0, points_used / 150) * min(1.0, 0.003 / max(fit.rms, 1e-6))
     box = {}
     if fit.frame is not None and fit.size is not None:
@@ -72,7 +75,8 @@ def observation(header: Header, fit: ShapeFit, points_used: int) -> ObjectObserv
     return ObjectObservation(
         header=header, centroid=Vec3.of(fit.centre), points_used=points_used, quality=quality,
         sigma_m=fit.sigma, shape=fit.shape, axis=Vec3.of(fit.axis), radius_m=fit.radius,
-        length_m=fit.length, fit_rms_m=fit.rms, **box)
+        length_m=fit.length if span is None else span[1] - span[0],
+        axial_offset_m=(span[0] + span[1]) / 2 if span else None, fit_rms_m=fit.rms, **box)
 
 
 def object_rotation(axis: np.ndarray) -> np.ndarray:
@@ -207,7 +211,8 @@ class PerceptionService(Service):
     def publish_observation(self, header: Header, result: FrameResult, n_points: int) -> None:
         assert result.fit is not None
         self.counters["observed"] += 1
-        self.bus.publish(OBJECT_KEY, observation(header, result.fit, len(result.points)))
+        self.bus.publish(OBJECT_KEY, observation(header, result.fit, len(result.points),
+                                                 result.span))
 
     def start_mesh_if_due(self) -> None:
         """Rebuild the mesh on the worker once the frames in it have doubled, at least every

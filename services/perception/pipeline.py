@@ -12,6 +12,7 @@ towards the camera.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -42,15 +43,19 @@ class PerceptionConfig(BaseModel):
                                  "times farther off the points than the learnt fits were "
                                  "typically is a failed fit (a wrong axis), not reported")
     seabed_refit_frames: int = 100
+    span_frames: int = Field(50, description="frames whose ends along the axis are pooled: "
+                             "a bottle's neck is seen in some views, not all")
 
 
 @dataclass
 class FrameResult:
-    """One frame's outcome: the fit (None if no object) and the object's points in world."""
+    """One frame's outcome: the fit (None if no object), the object's points in world and,
+    for a shape with an axis, where along it the object ends (:func:`axial_span`)."""
 
     fit: ShapeFit | None
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     reason: str | None = None
+    span: tuple[float, float] | None = None
 
 
 def to_world(points: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -112,6 +117,8 @@ class Perception:
         self.axis: np.ndarray | None = None  # the last reported fit's axis, world
         self.learnt: list[ShapeFit] = []
         self.frames = 0
+        self.spans: deque[tuple[float, float]] = deque(maxlen=self.cfg.span_frames)
+        self.span_axis: np.ndarray | None = None  # the direction self.spans are along
 
     def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
@@ -138,7 +145,23 @@ class Perception:
         if self.prior is None and not consistent_with(fit, self.learnt):
             return self._miss("partial view: the shape differs from the frames before")
         self._update_track(fit, stamp_ns)
-        return FrameResult(fit, candidate[fit.inliers])
+        return FrameResult(fit, candidate[fit.inliers], span=self._span(candidate, fit))
+
+    def _span(self, points: np.ndarray, fit: ShapeFit) -> tuple[float, float] | None:
+        """The object's ends along ``fit``'s axis (:func:`axial_span`), pooled over the last
+        ``span_frames`` frames (the 10th and 90th percentiles of their lower and upper
+        ends: what most views miss, some see), each oriented along the first fit's axis
+        (a lying object's axis flips between frames)."""
+        span = axial_span(points, fit)
+        if span is None:
+            return None
+        if self.span_axis is None:
+            self.span_axis = fit.axis
+        flip = fit.axis @ self.span_axis < 0
+        self.spans.append((-span[1], -span[0]) if flip else span)
+        lows, highs = np.array(self.spans).T
+        lo, hi = float(np.percentile(lows, 10)), float(np.percentile(highs, 90))
+        return (-hi, -lo) if flip else (lo, hi)
 
     def _start(self) -> ShapeFit | None:
         """The learnt shape, its axis where the last fit found it: a tethered cylinder tilts
@@ -208,6 +231,23 @@ class Perception:
             self.learnt.append(fit)
             if len(self.learnt) >= self.cfg.learn_frames:
                 self.prior = learnt_shape(self.learnt)
+
+
+def axial_span(points: np.ndarray, fit: ShapeFit) -> tuple[float, float] | None:
+    """Where the object ends along the fit's axis, metres from its centre (lower, upper):
+    the fitted shape's ends or, where they reach farther, its points' (1st and 99th
+    percentiles: a stray is no end). A bottle's neck is no part of the cylinder fitted to
+    its body, but its points are the object's: a 31 cm bottle's fit ended 8 cm short of its
+    neck, and the arm's palm met it there. None for a sphere or box.
+
+    points : array, shape (n, 3), metres, the frame of the fit
+    """
+    if fit.shape not in ("cylinder", "revolution"):
+        return None
+    h = (points - fit.centre) @ fit.axis
+    lo, hi = np.percentile(h, [1.0, 99.0])
+    return (min(float(lo), fit.offset - fit.length / 2),
+            max(float(hi), fit.offset + fit.length / 2))
 
 
 def consistent_with(fit: ShapeFit, fits: list[ShapeFit], tolerance: float = 0.1) -> bool:

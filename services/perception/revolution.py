@@ -110,7 +110,8 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     """Fit a solid of revolution to points seen from ``viewpoint``; with ``prior``, start from
     its axis. points : array, shape (n, 3), metres; viewpoint : shape (3,), same frame.
 
-    The fit's ``radius`` is the outline's largest, ``length`` its extent along the axis.
+    The fit's ``radius`` is the outline's largest, ``length`` its extent along the axis and
+    ``offset`` how far along the axis the middle of that extent lies from the volume centre.
     """
     p, vp = check_points(points), check_vector("viewpoint", viewpoint)
     m = np.median(p, axis=0)
@@ -156,6 +157,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
                          f"{prior.rms * 1e3:.2f} mm (a partial view)")
     # Across the axis as a wall fit's; along it, the outline's ends (a slice each).
     sigma = float(np.hypot(rms / np.sqrt(max(inliers.sum(), 1)) * 4, SLICE_M / 4))
-    a = a if a[2] >= 0 else -a
+    offset = (z[0] + z[-1]) / 2 - (z[0] + hc)
+    a, offset = (a, offset) if a[2] >= 0 else (-a, -offset)
     return ShapeFit("revolution", centre, a, float(outline.max()), float(z[-1] - z[0]), rms,
-                    inliers, sigma)
+                    inliers, sigma, offset=float(offset))

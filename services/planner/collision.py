@@ -52,7 +52,10 @@ class Body:
     ``axis``), or that sphere swept along the unit ``axis`` to ``half_length`` from the
     centroid either way (a cylinder: a capsule), or a box: ``half_length`` along its axis,
     ``half_breadth`` along ``breadth_axis`` (unit, ⟂ ``axis`` and ``side``) and ``radius``
-    along the unit ``side``, its thinnest. ``turns``: how it turns as it sways.
+    along the unit ``side``, its thinnest. ``turns``: how it turns as it sways. ``offset``:
+    metres along ``axis`` from the centroid to the middle of its length (a bottle's neck
+    moves its centroid towards the body: a capsule centred on the centroid left 3 cm of a
+    23 cm bottle's neck outside).
     """
 
     radius: float
@@ -62,6 +65,7 @@ class Body:
     half_breadth: float = 0.0
     #: How it turns over time (None: it keeps its orientation).
     turns: Turns | None = None
+    offset: float = 0.0
 
     @classmethod
     def from_observation(cls, msg: ObjectObservation) -> Body:
@@ -75,7 +79,8 @@ class Body:
         axis, half = unit(msg.axis), (msg.length_m or 2 * msg.radius_m) / 2
         if axis is not None and msg.side is not None and msg.side_width_m and msg.breadth_m:
             return cls(msg.side_width_m / 2, half, axis, unit(msg.side), msg.breadth_m / 2)
-        return cls(msg.radius_m, half, axis)
+        offset = (msg.axial_offset_m or 0.0) if axis is not None else 0.0
+        return cls(msg.radius_m, half, axis, offset=offset)
 
     @property
     def breadth_axis(self) -> np.ndarray | None:
@@ -91,7 +96,7 @@ class Body:
     @property
     def half_size(self) -> float:
         """Its farthest reach from the centroid along any of its axes."""
-        return max(self.radius, self.half_length, self.half_breadth)
+        return max(self.radius, self.half_length + abs(self.offset), self.half_breadth)
 
     @property
     def frame(self) -> np.ndarray | None:
@@ -100,6 +105,18 @@ class Body:
         if self.axis is None or self.side is None:
             return None
         return np.column_stack([self.side, cross(self.axis, self.side), self.axis])
+
+    @property
+    def orientation(self) -> np.ndarray | None:
+        """How it is turned, shape (3, 3): a box's :attr:`frame`; for a body round about its
+        axis, a frame whose third column is the axis (its turn about the axis changes
+        nothing); None for a sphere."""
+        if self.frame is not None or self.axis is None:
+            return self.frame
+        x = cross(self.axis, np.array([0.0, 1.0, 0.0]) if abs(self.axis[1]) < 0.9
+                  else np.array([1.0, 0.0, 0.0]))
+        x /= np.linalg.norm(x)
+        return np.column_stack([x, cross(self.axis, x), self.axis])
 
     def at(self, t: float) -> Body:
         """The body as it will be turned at ``t`` seconds (itself if it keeps still)."""
@@ -113,9 +130,12 @@ class Body:
         the object's surface with its centroid at ``centres`` (shape (k, 3)) and, given
         ``times`` (shape (k,), s), a box turned as it will be then: array, shape (k, c),
         negative where a segment is inside. A box is its own faces and corners; anything
-        else the rounded model :meth:`spine` sweeps."""
+        else the rounded model :meth:`spine` sweeps (turned, given ``times``, as it will be)."""
         if self.frame is None:
-            return segments_points_distance(p0, p1, centres[:, None, :] + self.spine()) - (
+            spine = self.spine()[None]  # (1, m, 3), or turned as it will be at each time
+            if self.turns is not None and times is not None and self.axis is not None:
+                spine = np.einsum("kij,mj->kmi", self.turns.at(times), spine[0])
+            return segments_points_distance(p0, p1, centres[:, None, :] + spine) - (
                 self.radius)
         frames = np.broadcast_to(self.frame, (len(centres), 3, 3))  # the box's axes each time
         if self.turns is not None and times is not None:
@@ -142,20 +162,25 @@ class Body:
         it out); a capsule round anything else (an ellipsoid's or a bottle's ends are
         rounded: 10° off its equator, the rims of a cylinder round a 13 x 15 cm ellipsoid
         reach 7.7 cm, wider than the jaw)."""
-        along = 0.0 if self.axis is None else abs(float(self.axis @ direction))
         if self.side is None:
-            return self.radius + along * max(self.half_length - self.radius, 0.0)
+            if self.axis is None:
+                return self.radius
+            along = float(self.axis @ direction)
+            spine = max(self.half_length - self.radius, 0.0)
+            return self.radius + max(0.0, along * self.offset + abs(along) * spine)
+        along = abs(float(self.axis @ direction))
         b = self.breadth_axis
         return (along * self.half_length + abs(float(b @ direction)) * self.half_breadth
                 + abs(float(self.side @ direction)) * self.radius)
 
     def spine(self) -> np.ndarray:
         """Points (k, 3) relative to its centroid that, each with ``radius``, cover it: one
-        at the centroid for a sphere, five along the axis for a cylinder (a capsule)."""
+        at the centroid for a sphere, five along the axis for a cylinder (a capsule), their
+        middle ``offset`` from the centroid."""
         if self.axis is None:
             return np.zeros((1, 3))
-        return np.linspace(-1.0, 1.0, 5)[:, None] * max(self.half_length - self.radius,
-                                                        0.0) * self.axis
+        spine = max(self.half_length - self.radius, 0.0)
+        return (self.offset + np.linspace(-1.0, 1.0, 5)[:, None] * spine) * self.axis
 
 
 def hand_hits(arm: ArmModel, T_grasp: np.ndarray, body: Body) -> bool:
