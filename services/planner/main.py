@@ -52,6 +52,11 @@ STANDBY_KEY = "wavegrasp/planner/standby"
 STANDBY_AGAIN_NS = 1_000_000_000  # after a standby move ends, before another may be asked
 
 
+#: A body this many times longer than it is wide has an axis worth turning (see
+#: :meth:`PlannerService.on_observation`).
+LONG = 1.5
+
+
 class PlannerSettings(Settings):
     arm_urdf: str | None = None
     execution_hold_s: float = 1.5
@@ -134,11 +139,15 @@ class PlannerService(Service):
             self.seen.append(c)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             self.body = Body.from_observation(msg)
-            # A box's faces fix its orientation, a bottle's or cylinder's outline its axis:
-            # both rock with the waves (a 31 cm bottle 25 degrees either way, and the palm
-            # met it where it had turned since the plan).
+            # A box's faces fix its orientation, a long body's outline its axis: both rock
+            # with the waves (a 31 cm bottle 25 degrees either way, and the palm met it
+            # where it had turned since the plan). A body nearly as wide as it is long is
+            # not turned: its axis is poorly set (a 13 x 15 cm ellipsoid's wandered 6
+            # degrees a frame, and the collisions its turns made up left nothing planned)
+            # and hardly matters.
             orientation = self.body.orientation
-            if orientation is None:
+            if orientation is None or self.body.frame is None and (
+                    self.body.half_length < LONG * self.body.radius):
                 self.frames.clear()
             else:
                 self.frames.append((msg.header.stamp_ns, orientation))

@@ -113,7 +113,9 @@ def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
     prediction's horizon; from its standby it can. Where the direct move would sweep
     through the object, it stops on the way at the first of ``via`` (poses, radians, clear
     of it) that keeps the whole move clear: from one standby to its mirror image on the
-    object's far side the first joint turns 3 rad through the object (random-7-034)."""
+    object's far side the first joint turns 3 rad through the object (random-7-034). An
+    arm already in the object's way moves if it comes no nearer than staying would (the
+    home pose of random-7-000 is 5 cm inside the sway: every move from it collided)."""
     if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
         return "already there"
     zero = np.zeros(len(q_now))
@@ -128,7 +130,8 @@ def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
             parts.append((times, q, qd) if not parts else (times[1:], q[1:], qd[1:]))
             start = times[-1]
         times, q, qd = (np.concatenate(x) for x in zip(*parts, strict=True))
-        if not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf):
+        if not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf,
+                        q_stay=q_now):
             return times, q, qd
     return "collision"
 
