@@ -242,21 +242,19 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
     with the arm at ``q`` (shape (k, n), radians)?
 
     From ``final_from`` on (the final move: the grasp itself) the jaw fingers may close in
-    and the rest of the arm may come near, to the prediction's own 1σ then (at most
-    ``clearance``): a palm planned 0-3 mm from a 13 x 15 cm ellipsoid met it in five grasps
-    of six, the prediction 9 mm uncertain there (random-7-004). Given ``q_stay`` (shape
-    (n,)), a link need come no nearer than it would with the arm staying there: an arm
-    waiting where the object sways through may move out of its way.
+    and the rest of the arm may come near, but must not touch. Given ``q_stay`` (shape
+    (n,)), a link need come no nearer than the object would come to it over ``times`` with
+    the arm staying there: an arm waiting where the object sways through may move out of
+    its way.
     """
     gap = _gaps(arm, T_world_base, times, q, path, body)
     final = times >= final_from
-    sigma = np.minimum(np.interp(times, path.times_s, path.sigma), clearance)
-    need = np.where(final, sigma, clearance)[:, None] * np.ones_like(gap)
+    need = np.where(final[:, None], 0.0, clearance) * np.ones_like(gap)
     if arm.jaw_capsule_count:
         need[final, -arm.jaw_capsule_count:] = -np.inf
     if q_stay is not None:
         staying = _gaps(arm, T_world_base, times, np.tile(q_stay, (len(times), 1)), path, body)
-        need = np.minimum(need, staying)
+        need = np.minimum(need, staying.min(axis=0))
     return bool(np.any(gap < need))
 
 

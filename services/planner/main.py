@@ -122,6 +122,7 @@ class PlannerService(Service):
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
+        self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
@@ -149,8 +150,26 @@ class PlannerService(Service):
             if orientation is None or self.body.frame is None and (
                     self.body.half_length < LONG * self.body.radius):
                 self.frames.clear()
+            elif self.misfit(orientation):
+                self.counters["turns: axis misfit skipped"] += 1
             else:
                 self.frames.append((msg.header.stamp_ns, orientation))
+
+    def misfit(self, orientation: np.ndarray) -> bool:
+        """Is a round body's axis (``orientation``'s third column) a misfit: turned more
+        than 45 degrees from the last one kept? Between frames a rocking object turns a few
+        degrees (36 degrees either way every 2 s is 11 degrees a frame at 10 Hz); one
+        outline fit in a few dozen of a 17 cm cylinder was about an axis 90 degrees off,
+        and turned so, the cylinder blocked every approach (random-7-013). Three in a row
+        are taken: the object did turn."""
+        if self.body.frame is not None or not self.frames or self._misfits >= 3:
+            self._misfits = 0
+            return False
+        if abs(float(self.frames[-1][1][:, 2] @ orientation[:, 2])) >= np.cos(np.pi / 4):
+            self._misfits = 0
+            return False
+        self._misfits += 1
+        return True
 
     def turning(self, period_s: float) -> Body:
         """The latest body, turning over the next periods as it turned over the last ones
