@@ -167,7 +167,8 @@ def test_an_objects_ends_are_where_its_points_reach_past_its_fitted_shape() -> N
     fit = ShapeFit("cylinder", np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.04, 0.2, 0.001,
                    np.ones(461, bool), 0.001)
     lo, hi = axial_span(np.vstack([body, neck, stray]), fit)
-    assert lo == pytest.approx(-0.17, abs=0.005) and hi == pytest.approx(0.1, abs=1e-9)
+    assert lo == pytest.approx(-0.17, abs=0.01)  # the lowest 1 % trimmed
+    assert hi == pytest.approx(0.1, abs=1e-9)
     assert axial_span(body, fit) == pytest.approx((-0.1, 0.1))
     assert axial_span(body, replace(fit, shape="sphere")) is None
 
