@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from wavegrasp.ops.bench_perception import FAMILIES, family_scenario
 from wavegrasp.perception.evaluate import evaluate, run_perception
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.main import observation
-from wavegrasp.perception.pipeline import Perception, axial_span
+from wavegrasp.perception.pipeline import FrameResult, Perception, axial_span
 from wavegrasp.planner.collision import Body
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_tf
@@ -104,22 +105,25 @@ def test_perception_finds_the_volume_centroid_of_each_family(recordings, prefix:
     assert ev.rmse <= 0.003, ev.row()
 
 
-def test_a_box_learnt_from_its_faces_reports_its_shape(recordings) -> None:
-    path = next(p for label, p in recordings.items() if label.startswith("box"))
-    track = run_perception(path)
-    assert np.isfinite(track.centres[:, 0]).mean() >= 0.9
-    # A cylinder or sphere fit of the same points is off by more than a centimetre.
-
-    perception, tf, shapes = Perception(), StaticTransforms(), set()
+def perceived(path: Path, perception: Perception) -> Iterator[FrameResult]:
+    """``perception``'s result for each camera frame of the recording at ``path``."""
+    tf = StaticTransforms()
     for m in open_recording(path).messages():
         if m.topic == "/tf_static":
             tf.update(decode_tf(m.cdr))
         elif m.topic == "/trisect/points":
             cloud = decode_points(m.cdr)
-            result = perception.process(cloud.points, tf.lookup("world", cloud.frame_id),
-                                        cloud.stamp_ns)
-            if result.fit is not None:
-                shapes.add(result.fit.shape)
+            yield perception.process(cloud.points, tf.lookup("world", cloud.frame_id),
+                                     cloud.stamp_ns)
+
+
+def test_a_box_learnt_from_its_faces_reports_its_shape(recordings) -> None:
+    path = next(p for label, p in recordings.items() if label.startswith("box"))
+    track = run_perception(path)
+    assert np.isfinite(track.centres[:, 0]).mean() >= 0.9
+    # A cylinder or sphere fit of the same points is off by more than a centimetre.
+    perception = Perception()
+    shapes = {result.fit.shape for result in perceived(path, perception) if result.fit}
     assert shapes == {"box"}
     assert perception.prior is not None and perception.prior.size is not None
     assert np.sort(perception.prior.size) == pytest.approx([0.05, 0.08, 0.15], abs=0.006)
@@ -135,17 +139,8 @@ def test_the_planner_models_a_bottle_from_its_base_to_its_neck(recordings) -> No
     centroid = solid_of_revolution(z, r)[1]
     below, above = centroid, spec.length - centroid  # the neck down: the longer end below
     assert below - above > 0.03
-    perception, tf, bodies = Perception(), StaticTransforms(), []
-    for m in open_recording(path).messages():
-        if m.topic == "/tf_static":
-            tf.update(decode_tf(m.cdr))
-        elif m.topic == "/trisect/points":
-            cloud = decode_points(m.cdr)
-            result = perception.process(cloud.points, tf.lookup("world", cloud.frame_id),
-                                        cloud.stamp_ns)
-            if result.fit is not None:
-                msg = observation(Header(), result.fit, len(result.points), result.span)
-                bodies.append(Body.from_observation(msg))
+    bodies = [Body.from_observation(observation(Header(), r.fit, len(r.points), r.span))
+              for r in perceived(path, Perception()) if r.fit is not None]
     assert len(bodies) > 60
     up = np.array([0.0, 0.0, 1.0])
     tops = [b.extent(np.sign(b.axis[2]) * b.axis) for b in bodies[-40:]]

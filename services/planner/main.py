@@ -120,7 +120,7 @@ class PlannerService(Service):
         self._failing_since_ns: int | None = None  # no plan from the idle arm since
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
-        #: How a box has been turned lately: (stamp ns, :attr:`Body.frame`).
+        #: How a box or long body has been turned lately: (stamp ns, :attr:`Body.orientation`).
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
@@ -160,8 +160,8 @@ class PlannerService(Service):
         than 45 degrees from the last one kept? Between frames a rocking object turns a few
         degrees (36 degrees either way every 2 s is 11 degrees a frame at 10 Hz); one
         outline fit in a few dozen of a 17 cm cylinder was about an axis 90 degrees off,
-        and turned so, the cylinder blocked every approach (random-7-013). Three in a row
-        are taken: the object did turn."""
+        and turned so, the cylinder blocked every approach (random-7-013). After three
+        skipped in a row the next is taken: the object did turn."""
         if self.body.frame is not None or not self.frames or self._misfits >= 3:
             self._misfits = 0
             return False
