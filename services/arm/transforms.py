@@ -60,3 +60,15 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (radians) between vectors a and b, arrays, shape (3,)."""
     return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b))
+
+
+def frame_along(axis: np.ndarray) -> np.ndarray:
+    """A rotation (3, 3) whose z is the unit ``axis`` (shape (3,)), its x as close to world x
+    as possible: an object's frame from its symmetry axis, where its turn about the axis
+    does not matter."""
+    z = axis / np.linalg.norm(axis)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([0.0, 1.0, 0.0]) - z[1] * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])

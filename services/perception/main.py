@@ -21,6 +21,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 from pydantic import Field
 
+from wavegrasp.arm.transforms import frame_along
 from wavegrasp.checks import StampOrder
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
@@ -77,16 +78,6 @@ def observation(header: Header, fit: ShapeFit, points_used: int,
         sigma_m=fit.sigma, shape=fit.shape, axis=Vec3.of(fit.axis), radius_m=fit.radius,
         length_m=fit.length if span is None else span[1] - span[0],
         axial_offset_m=(span[0] + span[1]) / 2 if span else None, fit_rms_m=fit.rms, **box)
-
-
-def object_rotation(axis: np.ndarray) -> np.ndarray:
-    """R_world_object (3, 3) with z along ``axis``; x as close to world x as possible."""
-    z = axis / np.linalg.norm(axis)
-    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
-    if np.linalg.norm(x) < 1e-6:
-        x = np.array([0.0, 1.0, 0.0]) - z[1] * z
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
 
 
 def mesh_worker_setup(cpus: str) -> None:
@@ -201,7 +192,7 @@ class PerceptionService(Service):
         self.bus.publish_cdr(POINTS_KEY, encode_points(result.points, cloud.stamp_ns, "world"),
                              "sensor_msgs/msg/PointCloud2", log_time_ns=cloud.stamp_ns)
         if self.perception.prior is not None:
-            self.accumulator.add(result.points, result.fit.centre, object_rotation(result.fit.axis))
+            self.accumulator.add(result.points, result.fit.centre, frame_along(result.fit.axis))
         return False
 
     def publish_missing(self, header: Header, reason: str) -> None:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.arm.transforms import cross
+from wavegrasp.arm.transforms import cross, frame_along
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.schemas import ObjectObservation, Vec3
 
@@ -113,10 +113,7 @@ class Body:
         nothing); None for a sphere."""
         if self.frame is not None or self.axis is None:
             return self.frame
-        x = cross(self.axis, np.array([0.0, 1.0, 0.0]) if abs(self.axis[1]) < 0.9
-                  else np.array([1.0, 0.0, 0.0]))
-        x /= np.linalg.norm(x)
-        return np.column_stack([x, cross(self.axis, x), self.axis])
+        return frame_along(self.axis)
 
     def at(self, t: float) -> Body:
         """The body as it will be turned at ``t`` seconds (itself if it keeps still)."""

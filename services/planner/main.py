@@ -147,8 +147,8 @@ class PlannerService(Service):
             # degrees a frame, and the collisions its turns made up left nothing planned)
             # and hardly matters.
             orientation = self.body.orientation
-            if orientation is None or self.body.frame is None and (
-                    self.body.half_length < LONG * self.body.radius):
+            if orientation is None or (self.body.frame is None
+                                       and self.body.half_length < LONG * self.body.radius):
                 self.frames.clear()
             elif self.misfit(orientation):
                 self.counters["turns: axis misfit skipped"] += 1
