@@ -61,14 +61,19 @@ def cylinder_vertices(radius: float, length: float, sides: int = 24) -> np.ndarr
 
 def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, PredictedPath],
             late_s: float = 0.0, truth: Callable[[float], np.ndarray] = swing,
-            mesh: np.ndarray | None = None) -> Result:
-    """Run the plan (approved at NOW) against the ``truth``, the can on its tether (and made
-    ``mesh`` once placed, as the service does when perception's mesh arrives)."""
+            mesh: np.ndarray | None = None, shape: ObjectShape = CAN,
+            close_s: float | None = None, jaw: list[tuple[float, float]] | None = None
+            ) -> Result:
+    """Run the plan (approved at NOW) against the ``truth``, the object (``shape``, the can) on
+    its tether (and made ``mesh`` once placed, as the service does when perception's mesh
+    arrives); the jaw starts closing at ``close_s`` (default the plan's), and its opening at
+    every step is appended to ``jaw`` as (time s, metres)."""
     plan, path = planned
     attempt = Attempt("p", plan.times + late_s, plan.q, plan.qd, plan.t_grasp + late_s,
                       plan.grasp_T_world[:3, 3], plan.t_final + late_s, plan.jaw_preshape_m,
-                      plan.t_close + late_s, (path.times_s, path.positions), NOW)
-    world = SimWorld(arm, T_world_base, CAN)
+                      (plan.t_close if close_s is None else close_s) + late_s,
+                      (path.times_s, path.positions), NOW)
+    world = SimWorld(arm, T_world_base, shape)
     try:
         world.place_object(truth(NOW), UPRIGHT)
         assert world.add_tether()
@@ -79,6 +84,8 @@ def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, Predic
         executor.start(attempt)
         for t in NOW + np.arange(1, 1000) * 0.01:  # ground truth at 100 Hz
             result = executor.advance(t, truth(t), UPRIGHT)
+            if jaw is not None:
+                jaw.append((t, world.jaw_opening()))
             if result is not None:
                 assert not executor.attempt
                 return result
@@ -92,6 +99,35 @@ def test_a_plan_that_ends_on_the_object_grasps_it(arm, T_world_base) -> None:
     assert result.success and result.failure is None, result
     assert result.evidence["fingers_touching"] == 2
     assert result.evidence["jaw_opening_m"] == pytest.approx(2 * CAN.radius_m, abs=0.004)
+
+
+def test_a_jaw_that_starts_closing_before_its_final_move_is_not_reopened(arm, T_world_base
+                                                                         ) -> None:
+    planned = plan_for(arm, T_world_base)
+    plan = planned[0]
+    assert plan.jaw_preshape_m > 0  # the final move narrows the jaw: here it must not
+    jaw: list[tuple[float, float]] = []
+    close_s = plan.t_final - 0.04
+    result = execute(arm, T_world_base, planned, close_s=close_s, jaw=jaw)
+    times, opening = np.array(jaw).T
+    closing = (times > close_s + 0.02) & (times < plan.t_grasp)
+    assert np.all(np.diff(opening[closing]) <= 1e-4), "the jaw opened again while closing"
+    assert opening[closing][-1] < opening[closing][0] - 0.02
+    assert result.evidence["jaw_opening_m"] < 2 * CAN.radius_m + 0.005, result
+
+
+def test_an_object_deep_in_the_jaw_is_held(arm, T_world_base) -> None:
+    # A 4 cm bottle's body that comes 5 cm short of the grasp point along the approach (the
+    # palm 2 cm behind it): the jaw closes on it there and holds it, 5 cm from the grasp
+    # point, as the water pulls it towards the arm.
+    thin = ObjectShape("cylinder", 0.02, 0.2)
+    planned = plan_for(arm, T_world_base)
+    back = -planned[0].grasp_T_world[:3, 2]
+    result = execute(arm, T_world_base, planned, shape=thin,
+                     truth=lambda t: swing(t) + 0.05 * back)
+    assert result.success, result
+    assert result.evidence["object_in_jaw_m"] < -0.03, result.evidence
+    assert result.evidence["object_from_tool_m"] > 0.05, result.evidence
 
 
 def test_the_mesh_replaces_the_fitted_shape_and_is_grasped(arm, T_world_base) -> None:

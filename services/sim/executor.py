@@ -3,7 +3,9 @@
 Rules (the README lists them too):
 
 - **success**: after the jaw closes at the grasp time and settles, both fingers touch the object
-  and it stays between them for ``hold_s`` while its drive keeps pulling it along its path.
+  and it stays between them for ``hold_s`` while its drive keeps pulling it along its path:
+  at the end both touch it and its centroid lies, along the approach, between the palm and
+  the fingertips (pulled against the palm, it is held still).
 - Otherwise the first rule that holds names the failure:
   1. **abrupt change**: the prediction the plan came from still held when the plan was
      approved (within ``abrupt_m`` / 2 of the object), then, before the grasp time, the
@@ -122,6 +124,11 @@ class Executor:
         names = world.link_names
         self._finger_names = {names[i] for i in world.finger_links}
         self._names = names
+        # Along the approach (tool z), from the palm to the fingertips, metres from the grasp
+        # point: an object whose centroid is there, both fingers on it, is held.
+        start, end, _radius = world.arm.jaw_capsules
+        z = np.concatenate([start[:, 2], end[:, 2]])
+        self._jaw_depth = (float(z.min()), float(z.max()))
 
     @property
     def busy(self) -> bool:
@@ -162,7 +169,10 @@ class Executor:
             for link in w.tether_touches():
                 self._touched.setdefault(f"{self._names[link]} on the tether",
                                          a.t_grasp - w.time_s)
-        if not self._preshaped and a.jaw_preshape_m > 0 and w.time_s >= a.final_from:
+        # A jaw that began closing before its final move keeps closing: the preshape is for
+        # a jaw still open wide, and reopening it there let the object swing through.
+        if (not self._preshaped and not self._closing and a.jaw_preshape_m > 0
+                and w.time_s >= a.final_from):
             w.set_jaw(a.jaw_preshape_m)
             self._preshaped = True
         if not self._closing and w.time_s >= a.t_close:
@@ -178,11 +188,14 @@ class Executor:
         a, w, cfg = self.attempt, self.world, self.cfg
         assert a is not None and self._tool_at_grasp is not None
         touching = {self._names[i] for i in w.contacts()}
-        gap = float(np.linalg.norm(w.object_position() - w.tool_position()))
+        tool, R_world_tool = w.tool_pose()
+        offset = w.object_position() - tool
+        depth = float(offset @ R_world_tool[:, 2])
         evidence: dict[str, float | str | bool] = {
             "fingers_touching": len(touching & self._finger_names),
-            "object_from_tool_m": gap, "jaw_opening_m": w.jaw_opening()}
-        if touching >= self._finger_names and gap < 0.05:
+            "object_from_tool_m": float(np.linalg.norm(offset)),
+            "object_in_jaw_m": depth, "jaw_opening_m": w.jaw_opening()}
+        if touching >= self._finger_names and self._jaw_depth[0] <= depth <= self._jaw_depth[1]:
             return Result(a.plan_id, True, None, evidence)
         times = np.array([t for t, _ in self._truth])
         truth = np.array([p for _, p in self._truth])

@@ -236,9 +236,15 @@ class SimWorld:
 
     def tool_position(self) -> np.ndarray:
         """The grasp point between the jaws, metres, world."""
+        return self.tool_pose()[0]
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grasp point (3,), metres, world, and the tool's axes, shape (3, 3), columns x
+        (the jaws close along it), y, z (the approach) in world."""
         state = pb.getLinkState(self.robot, self.tool_link, computeForwardKinematics=True,
                                 physicsClientId=self.client)
-        return np.array(state[4])
+        R = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        return np.array(state[4]), R
 
     def contacts(self) -> set[int]:
         """The arm's links (PyBullet indices) touching the object now."""
