@@ -119,6 +119,7 @@ class Perception:
         self.frames = 0
         self.spans: deque[tuple[float, float]] = deque(maxlen=self.cfg.span_frames)
         self.span_axis: np.ndarray | None = None  # the direction self.spans are along
+        self._near: np.ndarray | None = None  # this frame's points before the density filter
 
     def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
@@ -132,7 +133,7 @@ class Perception:
             return self._miss(candidate)
         try:
             check_points(candidate, self.cfg.min_object_points)
-            fit = fit_shape(candidate, eye, self._start())
+            fit = fit_shape(candidate, eye, self._start(), raw=self._near)
         except ValueError as exc:
             return self._miss(f"shape fit failed: {exc}")
         if self.prior is not None and self.prior.far_off(fit.rms, self.cfg.max_rms_ratio):
@@ -186,6 +187,7 @@ class Perception:
         if self.seabed is None or self.frames % cfg.seabed_refit_frames == 0:
             self.seabed = fit_seabed(world, eye) if len(world) else None
         world = self._above_seabed(world)
+        self._near = world
         dense, spacing = surface_points(world, cfg)
         lo, hi = cfg.object_size_m
         for c in clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
@@ -207,6 +209,7 @@ class Perception:
         offset = points - centre_cam
         near = np.einsum("ij,ij->i", offset, offset) < radius**2
         world = self._above_seabed(to_world(points[near], T))
+        self._near = world
         dense, spacing = surface_points(world, cfg)
         found = clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
                          cfg.min_object_points)

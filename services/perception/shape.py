@@ -14,8 +14,10 @@ EXPLAINED_MORE = 0.05  # fit_shape: or a free outline explains this many more of
 SHAPE_RMS_RATIO = 0.7  # fit_shape: the cylinder must beat the sphere's RMS by this factor
 
 
-def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = None) -> ShapeFit:
-    """Fit the object: with `prior`, its shape with its sizes fixed; else choose.
+def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = None,
+              raw: np.ndarray | None = None) -> ShapeFit:
+    """Fit the object: with `prior`, its shape with its sizes fixed; else choose. `raw`: the
+    points around the object before the density filter, which a box is learnt from too.
 
     A box (box.py) wins when its faces hold BOX_EXPLAINED of the points, every extent is seen
     and its RMS is lower; a free solid of revolution (revolution.py: ellipsoids, bottles with
@@ -38,7 +40,7 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
         return fit_cylinder(points, viewpoint, prior.radius, prior.length, prior.axis)
     sphere, cylinder = fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint)
     best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
-    for fit in (fit_box, fit_revolution):
+    for fit in (lambda p, v: fit_box(p, v, raw=raw), fit_revolution):
         try:
             other = fit(points, viewpoint)
         except FaceOn:
