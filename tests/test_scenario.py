@@ -145,8 +145,7 @@ def test_eval_suite_random_runs_drawn_scenarios_and_reports_them_by_factor(
     for run in report["runs"]:
         assert run["exit_code"] == 0 and run["trials"] == 1
         assert set(run["factors"]) >= {"mount bearing (deg)", "object", "period (s)", "cloud"}
-    # The pipeline really ran: random-3-000 (a bottle) is planned on; random-3-001, a box the
-    # camera sees only face-on (its depth hidden), is never observed (a known failure).
+    # The pipeline really ran: random-3-000 (a bottle) is planned on.
     assert report["runs"][0]["scenario"] == "random-3-000" and report["runs"][0]["planned_on"] > 0
     if ran:
         assert set(report["by_factor"]["blend"]) == set(report["runs"][0]["factors"])
