@@ -82,8 +82,10 @@ def test_an_object_that_cannot_be_is_refused_naming_the_field(obj: dict, problem
 
 #: The families perception's accuracy is tested on (label prefixes of FAMILIES). The flat
 #: ellipsoid's outline was fitted about a wrong axis and learnt as a sphere (6.9 mm off, 69 %
-#: of frames).
-ACCURACY = ("box 8 x 5 x 15 cm, turned", "ellipsoid 7", "ellipsoid 12", "bottle 6.5")
+#: of frames); the 6 x 4 x 10 cm box's side, seen at 70 degrees, was thinned by the density
+#: filter and its depth learnt short (4.3 mm off, 85 % of frames).
+ACCURACY = ("box 8 x 5 x 15 cm, turned", "ellipsoid 7", "ellipsoid 12", "bottle 6.5",
+            "box 6 x 4 x 10")
 
 
 @pytest.fixture(scope="module")
