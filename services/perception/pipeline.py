@@ -119,21 +119,21 @@ class Perception:
         self.frames = 0
         self.spans: deque[tuple[float, float]] = deque(maxlen=self.cfg.span_frames)
         self.span_axis: np.ndarray | None = None  # the direction self.spans are along
-        self._near: np.ndarray | None = None  # this frame's points before the density filter
 
     def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
         self.frames += 1
         eye = T_world_cam[:3, 3]
         if self.track is None:
-            candidate = self._acquire(points, T_world_cam, eye)
+            found = self._acquire(points, T_world_cam, eye)
         else:
-            candidate = self._follow(points, T_world_cam, stamp_ns)
-        if isinstance(candidate, str):
-            return self._miss(candidate)
+            found = self._follow(points, T_world_cam, stamp_ns)
+        if isinstance(found, str):
+            return self._miss(found)
+        candidate, near = found
         try:
             check_points(candidate, self.cfg.min_object_points)
-            fit = fit_shape(candidate, eye, self._start(), raw=self._near)
+            fit = fit_shape(candidate, eye, self._start(), raw=near)
         except ValueError as exc:
             return self._miss(f"shape fit failed: {exc}")
         if self.prior is not None and self.prior.far_off(fit.rms, self.cfg.max_rms_ratio):
@@ -179,7 +179,10 @@ class Perception:
             self.track = None
         return FrameResult(None, reason=reason)
 
-    def _acquire(self, points: np.ndarray, T: np.ndarray, eye: np.ndarray) -> np.ndarray | str:
+    def _acquire(self, points: np.ndarray, T: np.ndarray, eye: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray] | str:
+        """The most object-like cluster in the workspace and the points it was found among
+        (before the density filter), world; or why none."""
         cfg = self.cfg
         world = to_world(points, T)
         inside = np.all((world >= cfg.workspace_min) & (world <= cfg.workspace_max), axis=1)
@@ -187,16 +190,18 @@ class Perception:
         if self.seabed is None or self.frames % cfg.seabed_refit_frames == 0:
             self.seabed = fit_seabed(world, eye) if len(world) else None
         world = self._above_seabed(world)
-        self._near = world
         dense, spacing = surface_points(world, cfg)
         lo, hi = cfg.object_size_m
         for c in clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
                           cfg.min_object_points):
             if lo <= np.linalg.norm(np.ptp(c, axis=0)) <= hi * 1.5:
-                return c
+                return c, world
         return "no object-like cluster in the workspace"
 
-    def _follow(self, points: np.ndarray, T: np.ndarray, stamp_ns: int) -> np.ndarray | str:
+    def _follow(self, points: np.ndarray, T: np.ndarray, stamp_ns: int
+                ) -> tuple[np.ndarray, np.ndarray] | str:
+        """The cluster nearest where the track predicts the object and the points near there
+        (before the density filter), world; or why none."""
         cfg = self.cfg
         dt = max(0.0, (stamp_ns - self.last_stamp_ns) * 1e-9)
         predicted = self.track + self.velocity * min(dt, 0.5)
@@ -209,13 +214,12 @@ class Perception:
         offset = points - centre_cam
         near = np.einsum("ij,ij->i", offset, offset) < radius**2
         world = self._above_seabed(to_world(points[near], T))
-        self._near = world
         dense, spacing = surface_points(world, cfg)
         found = clusters(dense, cfg.cluster_eps_spacings * max(spacing, 1e-3),
                          cfg.min_object_points)
         if not found:
             return "object not found near its track"
-        return min(found, key=lambda c: np.linalg.norm(c.mean(axis=0) - predicted))
+        return min(found, key=lambda c: np.linalg.norm(c.mean(axis=0) - predicted)), world
 
     def _above_seabed(self, world: np.ndarray) -> np.ndarray:
         if self.seabed is None or not len(world):
