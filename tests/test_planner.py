@@ -22,7 +22,7 @@ from wavegrasp.planner.approach import (
 )
 from wavegrasp.planner.collision import Body, Turns, clearance, collides, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, tool_orientations
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
@@ -160,6 +160,19 @@ def test_grasp_orientations_close_across_the_motion_and_the_axis(axis) -> None:
         assert R[:, 2] @ d <= 1e-9 and R[:, 2][2] < 0.5  # never from behind, never from below
     scores = [R[:, 2] @ preferred for R in frames]
     assert scores == sorted(scores, reverse=True)
+
+
+def test_a_sphere_reported_with_an_axis_may_be_closed_on_across_its_motion() -> None:
+    """Perception reports a sphere with an axis (here upright, as the waves carry it along
+    x). Held to close across that axis, the jaws closed along the motion, and a 13 cm sphere
+    swept across the 14 cm jaw (random-7-034: 1 prediction in 62 planned). A long cylinder
+    on the same axis is still closed on across it only."""
+    d, up = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    shoulder = np.array([0.0, -0.6, -0.1])
+    _, _, frames = tool_orientations(np.zeros(3), d, shoulder, Body(0.066, 0.066, up))
+    assert any(abs(R[:, 0] @ up) > 0.99 for R in frames)  # across the motion
+    _, _, frames = tool_orientations(np.zeros(3), d, shoulder, Body(0.03, 0.1, up))
+    assert frames and all(abs(R[:, 0] @ up) < 1e-9 for R in frames)
 
 
 def test_a_box_reaches_its_corners_along_any_direction() -> None:

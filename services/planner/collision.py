@@ -16,6 +16,10 @@ from wavegrasp.arm.transforms import cross, frame_along
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.schemas import ObjectObservation, Vec3
 
+#: A body this many times longer than it is wide has an axis that matters: the jaws close
+#: across it, and it is turned as the body rocks (see :attr:`Body.long`).
+LONG = 1.5
+
 #: metres: the most apart the points sampled along a link's axis are where it is checked
 #: against a box (the distance found is at most half this above the true one)
 LINK_SAMPLE_M = 0.01
@@ -81,6 +85,15 @@ class Body:
             return cls(msg.side_width_m / 2, half, axis, unit(msg.side), msg.breadth_m / 2)
         offset = (msg.axial_offset_m or 0.0) if axis is not None else 0.0
         return cls(msg.radius_m, half, axis, offset=offset)
+
+    @property
+    def long(self) -> bool:
+        """Has an axis and is at least :data:`LONG` times as long as it is wide. A body
+        that is not (a sphere perception reports with an axis, a 13 x 15 cm ellipsoid) may
+        be closed on in any direction that fits the jaw: held only across its axis, a 13 cm
+        sphere on an axis set vertical was closed on along its motion and planned 1
+        prediction in 62 (random-7-034)."""
+        return self.axis is not None and self.half_length >= LONG * self.radius
 
     @property
     def breadth_axis(self) -> np.ndarray | None:

@@ -179,7 +179,8 @@ def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body
     outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
     towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
     return outwards, towards, grasp_orientations(d, body.axis, -perpendicular(d, towards),
-                                                 outwards=outwards, faces=body.faces)
+                                                 outwards=outwards, faces=body.faces,
+                                                 round_body=not body.long)
 
 
 def cheap_rejection(arm: ArmModel, R: np.ndarray, outwards: np.ndarray, body: Body,
