@@ -20,7 +20,7 @@ from wavegrasp.planner.approach import (
     perpendicular,
     waypoints,
 )
-from wavegrasp.planner.collision import Body, Turns, clearance, collides, hand_hits
+from wavegrasp.planner.collision import NEAR_M, Body, Turns, clearance, collides, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp, tool_orientations
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
@@ -173,6 +173,15 @@ def test_a_sphere_reported_with_an_axis_may_be_closed_on_across_its_motion() -> 
     assert any(abs(R[:, 0] @ up) > 0.99 for R in frames)  # across the motion
     _, _, frames = tool_orientations(np.zeros(3), d, shoulder, Body(0.03, 0.1, up))
     assert frames and all(abs(R[:, 0] @ up) < 1e-9 for R in frames)
+    # So is a box about as long as it is wide (random-11-014: 11.0 x 9.4 x 11.7 cm), on
+    # its ends; a long one is not.
+    side = np.array([0.6, 0.8, 0.0])
+    _, _, frames = tool_orientations(np.zeros(3), d, shoulder, Body(0.047, 0.0585, up, side,
+                                                                    0.055))
+    assert any(abs(R[:, 0] @ up) > 0.99 for R in frames)
+    _, _, frames = tool_orientations(np.zeros(3), d, shoulder, Body(0.03, 0.13, up, side,
+                                                                    0.055))
+    assert frames and all(abs(R[:, 0] @ up) < 1e-9 for R in frames)
 
 
 def test_a_box_reaches_its_corners_along_any_direction() -> None:
@@ -282,6 +291,27 @@ def test_a_link_near_a_boxs_corner_touches_it() -> None:
     face = box.gaps(np.array([[[0.06, -0.1, 0.0]]]), np.array([[[0.06, 0.1, 0.0]]]),
                     np.zeros((1, 3)))
     assert face[0, 0] == pytest.approx(0.02, abs=1e-6)
+
+
+def test_a_box_is_measured_exactly_near_it_and_never_overestimated_far_from_it() -> None:
+    """Segments all round a turned box: within NEAR_M of it the gap is the distance to the
+    box (its points sampled densely here); beyond, a lower bound of at least NEAR_M."""
+    R = Rotation.from_euler("xyz", [20.0, -35.0, 50.0], degrees=True).as_matrix()
+    box = Body(0.03, 0.09, R[:, 2], R[:, 0], 0.055)
+    rng = np.random.default_rng(4)
+    p0 = rng.uniform(-0.4, 0.4, (1, 400, 3))
+    p1 = p0 + rng.normal(0.0, 0.1, (1, 400, 3))
+    gap = box.gaps(p0, p1, np.zeros((1, 3)))[0]
+    u = np.linspace(0.0, 1.0, 400)[:, None, None]
+    along = (p0[0] + u * (p1 - p0)[0]) @ R  # (400 along, 400 segments, 3), box frame
+    over = np.abs(along) - [0.03, 0.055, 0.09]
+    exact = (np.linalg.norm(np.maximum(over, 0.0), axis=-1)
+             + np.minimum(over.max(axis=-1), 0.0)).min(axis=0)
+    near = exact < NEAR_M - 0.01
+    assert near.sum() > 20 and (~near).sum() > 20
+    np.testing.assert_allclose(gap[near], exact[near], atol=0.003)
+    assert np.all(gap[~near] <= exact[~near] + 0.003)
+    assert np.all(gap[exact >= NEAR_M + 0.01] >= NEAR_M)
 
 
 def test_the_palm_meets_an_upright_bottle_from_above_but_not_from_the_side(

@@ -20,6 +20,11 @@ from wavegrasp.schemas import ObjectObservation, Vec3
 #: across it, and it is turned as the body rocks (see :attr:`Body.long`).
 LONG = 1.5
 
+#: metres: a box's distance is measured exactly below this; beyond it, a lower bound. More
+#: than a link's radius and the clearance asked of it together (6 and 1 cm on our arm): a
+#: link's capsule is nearer than the clearance only where its axis is nearer than that.
+NEAR_M = 0.15
+
 #: metres: the most apart the points sampled along a link's axis are where it is checked
 #: against a box (the distance found is at most half this above the true one)
 LINK_SAMPLE_M = 0.01
@@ -101,10 +106,14 @@ class Body:
 
     @property
     def faces(self) -> list[np.ndarray] | None:
-        """A box's face normals across its axis, thinnest first: the jaws close along one;
-        None for a sphere or cylinder."""
+        """A box's face normals the jaws may close along: across its axis, thinnest first,
+        then its axis itself unless it is :attr:`long` (an 11.0 x 9.4 x 11.7 cm box swinging
+        level, closed on only across its axis, was closed on along its motion); None for a
+        sphere or cylinder."""
         b = self.breadth_axis
-        return None if b is None else [self.side, b]
+        if b is None or self.axis is None:
+            return None
+        return [self.side, b] if self.long else [self.side, b, self.axis]
 
     @property
     def half_size(self) -> float:
@@ -139,8 +148,9 @@ class Body:
         """Distance, metres, from each segment p0-p1 (arrays, shape (k, c, 3), world) to
         the object's surface with its centroid at ``centres`` (shape (k, 3)) and, given
         ``times`` (shape (k,), s), a box turned as it will be then: array, shape (k, c),
-        negative where a segment is inside. A box is its own faces and corners; anything
-        else the rounded model :meth:`spine` sweeps (turned, given ``times``, as it will be)."""
+        negative where a segment is inside. A box is its own faces and corners (exact below
+        :data:`NEAR_M`, at least that beyond it); anything else the rounded model
+        :meth:`spine` sweeps (turned, given ``times``, as it will be)."""
         if self.frame is None:
             spine = self.spine()[None]  # (1, m, 3), or turned as it will be at each time
             if self.turns is not None and times is not None and self.axis is not None:
@@ -150,14 +160,24 @@ class Body:
         frames = np.broadcast_to(self.frame, (len(centres), 3, 3))  # the box's axes each time
         if self.turns is not None and times is not None:
             frames = self.turns.at(times) @ self.frame
-        count = int(np.ceil(np.linalg.norm(p1 - p0, axis=-1).max() / LINK_SAMPLE_M)) + 1
+        # The box itself only where a segment comes near the sphere round it; elsewhere
+        # that sphere's gap, a lower bound of at least NEAR_M (planning a box took 8 times
+        # as long as a cylinder, most of it here).
+        half = np.array([self.radius, self.half_breadth, self.half_length])
+        out = segments_points_distance(p0, p1, centres[:, None, :]) - float(np.linalg.norm(half))
+        k, c = np.nonzero(out < NEAR_M)
+        if not len(k):
+            return out
+        a, b = p0[k, c], p1[k, c]  # (n, 3)
+        count = int(np.ceil(np.linalg.norm(b - a, axis=-1).max() / LINK_SAMPLE_M)) + 1
         u = np.linspace(0.0, 1.0, count)[:, None]
-        samples = p0[:, :, None, :] + u * (p1 - p0)[:, :, None, :]  # (k, c, m, 3)
-        local = np.einsum("kcmi,kij->kcmj", samples - centres[:, None, None, :], frames)
-        over = np.abs(local) - np.array([self.radius, self.half_breadth, self.half_length])
+        samples = a[:, None, :] + u * (b - a)[:, None, :]  # (n, m, 3)
+        local = np.einsum("nmi,nij->nmj", samples - centres[k, None, :], frames[k])
+        over = np.abs(local) - half
         distance = np.linalg.norm(np.maximum(over, 0.0), axis=-1) + np.minimum(
             over.max(axis=-1), 0.0)
-        return distance.min(axis=-1)
+        out[k, c] = distance.min(axis=-1)
+        return out
 
     def rotated(self, R: np.ndarray) -> Body:
         """The same body with its directions turned by ``R`` (3, 3), keeping that
