@@ -72,6 +72,9 @@ class PlannerConfig(BaseModel):
                                       "prediction's own 1σ exceeds this are not tried (None: "
                                       "half the jaw's widest opening: the object would as "
                                       "likely be outside the open jaw as inside it)")
+    tethered: bool = Field(True, description="the object hangs on a line from its lowest "
+                           "point, as moored and tethered objects do: no link, a finger "
+                           "neither, may touch it (collision.LINE_M of it)")
     ik_max_iter: int = 40
     ik_restarts: int = 0
 
@@ -180,7 +183,7 @@ def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body
     towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
     return outwards, towards, grasp_orientations(d, body.axis, -perpendicular(d, towards),
                                                  outwards=outwards, faces=body.faces,
-                                                 round_body=not body.long)
+                                                 round_body=body.round)
 
 
 def cheap_rejection(arm: ArmModel, R: np.ndarray, outwards: np.ndarray, body: Body,
@@ -282,7 +285,8 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
     qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
     final_from = t_g - d_path + approach.spline.x[-2]
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from,
+                line=cfg.tethered):
         return "collision", 0.0
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
     sigma = float(np.interp(t_g, path.times_s, path.sigma))
