@@ -399,45 +399,6 @@ def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
         service.bus.close()
 
 
-def test_the_arm_goes_to_its_standby_while_the_predictions_warm_up(router: Router,
-                                                                  arm: ArmModel) -> None:
-    """A mount turned away from the object: while the predictor is still cold, once the
-    sway has been seen for a period, the idle arm moves to its standby (trials begin with
-    the first warm prediction; random-7-034 spent its first on a 6.5 s move asked after
-    it), keeping clear of every place the object was seen; and only once."""
-    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
-    try:
-        T_world_base = np.eye(4)
-        T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
-        service.tf.update([("world", arm.base_link, T_world_base)])
-        times = np.arange(0.0, 1.0, 0.1)
-        service.seen.extend(swing(times))
-        service.seen_ns.extend((times * 1e9).astype(int))
-
-        def cold(now: float) -> tuple[MotionPrediction, Delivery]:
-            msg, d = delivered(prediction(now), now)
-            return msg.model_copy(update={"warm": False}), d
-
-        service.plan(*cold(1.0))  # seen for less than the 1.82 s period: not yet
-        assert service.counters["standby moves"] == 0, dict(service.counters)
-        times = np.arange(1.0, 6.0, 0.1)
-        service.seen.extend(swing(times))
-        service.seen_ns.extend((times * 1e9).astype(int))
-        service.plan(*cold(6.0))
-        assert service.counters["standby moves"] == 1, dict(service.counters)
-        assert service.counters["plans"] + service.counters["no plan"] == 0
-        q_standby = service.standby(T_world_base, int(6e9))
-        assert clearance(arm, T_world_base, q_standby, np.array(service.seen),
-                         service.body) > 0.01
-        service.arm_moving = True  # the sim executes it
-        service.plan(*cold(6.1))
-        service.arm_moving, service.q_now = False, q_standby
-        service.plan(*cold(service._standby_end_ns * 1e-9 + 1.1))
-        assert service.counters["standby moves"] == 1, dict(service.counters)
-    finally:
-        service.bus.close()
-
-
 def test_an_arm_looking_across_the_motion_gets_grasps_the_way_it_faces() -> None:
     d = np.array([1.0, 0.0, 0.0])  # the object swings along x; the arm looks along +y at it
     outwards = np.array([0.0, 0.9, 0.436])

@@ -115,7 +115,6 @@ class PlannerService(Service):
         self._failing_since_ns: int | None = None  # no plan from the idle arm since
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
-        self.seen_ns: deque[int] = deque(maxlen=100)  # when, ns
         #: How a box or long body has been turned lately: (stamp ns, :attr:`Body.orientation`).
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
@@ -134,7 +133,6 @@ class PlannerService(Service):
         if msg.centroid is not None:  # where the object sways: the arm waits facing it
             c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
             self.seen.append(c)
-            self.seen_ns.append(msg.header.stamp_ns)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             self.body = Body.from_observation(msg)
             # A box's faces fix its orientation, a long body's outline its axis: both rock
@@ -267,8 +265,6 @@ class PlannerService(Service):
         if not msg.warm or msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             self._failing_since_ns = None
-            if not msg.warm and not self.arm_moving and msg.header.stamp_ns >= self.busy_until_ns:
-                self.ready_while_warming(msg, d)
             return
         if msg.header.stamp_ns < self._standby_end_ns:
             # Until the arm has started the move it asked for it still looks idle; a plan
@@ -297,21 +293,6 @@ class PlannerService(Service):
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
 
-    def ready_while_warming(self, msg: MotionPrediction, d: Delivery) -> None:
-        """While the predictor warms up, move the idle arm to its standby, clear of every
-        place the object has been seen, once its sway has been seen for a whole period (the
-        cold prediction's): trials begin with the first warm prediction, and the arm may
-        start seconds from where it waits (random-7-034: a 6.5 s move, asked 2.5 s after
-        the predictions warmed, used up the first trial)."""
-        period = msg.period_s
-        if not np.isfinite(period) or period <= 0 or len(self.seen_ns) < 2 or (
-                self.seen_ns[-1] - self.seen_ns[0] < period * 1e9):
-            return
-        try:
-            T_world_base = self.tf.lookup("world", self.arm.base_link)
-        except ValueError:
-            return
-        self.ask_standby(msg, d, None, T_world_base)
 
     def standby(self, T_world_base: np.ndarray, stamp_ns: int) -> np.ndarray:
         """The standby pose: the chosen one of :func:`standby_poses` (the first, until
@@ -375,21 +356,18 @@ class PlannerService(Service):
         self._choice, self._failing_since_ns = j, None
         return move
 
-    def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath | None,
+    def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                     T_world_base: np.ndarray) -> None:
         """No plan from where the idle arm is: have it move to its standby first, once the
-        object has been seen a while and unless a move asked for earlier is still under way.
-        With no ``path`` (the predictor warming up), the move keeps clear of every place
-        the object has been seen, and no other standby is probed."""
+        object has been seen a while and unless a move asked for earlier is still under way."""
         if len(self.seen) < self.seen.maxlen // 2 or (
                 msg.header.stamp_ns < self._standby_end_ns + STANDBY_AGAIN_NS):
             return
         q_standby = self.standby(T_world_base, msg.header.stamp_ns)
-        move = standby_move(self.arm, T_world_base, self.q_now, q_standby,
-                            np.array(self.seen) if path is None else path,
+        move = standby_move(self.arm, T_world_base, self.q_now, q_standby, path,
                             msg.header.stamp_ns * 1e-9, self.body, self.config,
                             via=self.other_standbys(self._choice))
-        if isinstance(move, str) and path is not None:  # there already, or cannot get there
+        if isinstance(move, str):  # there already, or it cannot get there now
             move = self.probe_standby(msg, path, T_world_base) or move
         if isinstance(move, str):
             if move != "already there":

@@ -103,15 +103,13 @@ def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
 
 
 def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
-                 q_standby: np.ndarray, path: PredictedPath | np.ndarray, now: float,
-                 body: Body, cfg: PlannerConfig, via: list[np.ndarray] | tuple = ()
+                 q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
+                 cfg: PlannerConfig, via: list[np.ndarray] | tuple = ()
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
     ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
     why not ("already there", "cannot be timed", "collision" with the object on its
-    predicted ``path``, or, before any prediction can be trusted, at any of the places
-    ``path`` (array, shape (s, 3), metres, world) it has been seen). An arm that starts
-    facing away cannot reach a grasp within the
+    predicted ``path``). An arm that starts facing away cannot reach a grasp within the
     prediction's horizon; from its standby it can. Where the direct move would sweep
     through the object, it stops on the way at the first of ``via`` (poses, radians, clear
     of it) that keeps the whole move clear: from one standby to its mirror image on the
@@ -132,35 +130,10 @@ def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
             parts.append((times, q, qd) if not parts else (times[1:], q[1:], qd[1:]))
             start = times[-1]
         times, q, qd = (np.concatenate(x) for x in zip(*parts, strict=True))
-        if isinstance(path, PredictedPath):
-            clear = not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m,
-                                 np.inf, q_stay=q_now)
-        else:
-            clear = clear_of_places(arm, T_world_base, q[::5], path, body, cfg.clearance_m,
-                                    q_now)
-        if clear:
+        if not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf,
+                        q_stay=q_now):
             return times, q, qd
     return "collision"
-
-
-def clear_of_places(arm: ArmModel, T_world_base: np.ndarray, qs: np.ndarray,
-                    places: np.ndarray, body: Body, clearance_m: float, q_stay: np.ndarray,
-                    count: int = 30) -> bool:
-    """Does the arm at every one of ``qs`` (shape (k, n), radians) keep ``clearance_m`` from
-    the object at each of (up to ``count`` of) ``places`` (shape (s, 3), metres, world), or
-    at least as far as it keeps at ``q_stay`` (shape (n,)) from there, link by link (an arm
-    already in the object's way may leave it)?"""
-    places = places[::max(1, int(np.ceil(len(places) / count)))]
-    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-
-    def gaps(q: np.ndarray) -> np.ndarray:  # (k, links): the nearest over the places
-        p0, p1, radius = arm.capsules_batch(q)
-        p0, p1 = p0 @ R.T + t, p1 @ R.T + t
-        return np.min([body.gaps(p0, p1, np.broadcast_to(c, (len(q), 3))) - radius
-                       for c in places], axis=0)
-
-    need = np.minimum(clearance_m, gaps(np.asarray(q_stay)[None])[0])
-    return bool(np.all(gaps(qs) >= need))
 
 
 def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
