@@ -103,8 +103,7 @@ def perpendicular(d: np.ndarray, towards: np.ndarray) -> np.ndarray:
 
 def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.ndarray,
                        count: int = 7, outwards: np.ndarray | None = None,
-                       faces: list[np.ndarray] | None = None,
-                       round_body: bool = False) -> list[np.ndarray]:
+                       faces: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """Tool orientations for a grasp of an object arriving along ``d`` (unit, world), best
     first: arrays, shape (3, 3), columns x (the jaws close along it), y, z (the tool points
     along it), world. A cylinder's (unit ``axis``) jaws always close across its axis.
@@ -119,17 +118,15 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
     object's line is). The paper's family comes first; in each, those nearest the
     ``preferred`` z (unit) first. A box's jaws close on a pair of its ``faces`` (unit
     normals across its axis): along a normal, or as near it as the family allows (within 30°).
-    A ``round_body`` (an axis, but hardly longer than it is wide: a sphere perception reports
-    with one) is closed on across its axis first, then in the other directions too.
     """
     if faces is not None:
         closings = _across(faces, d)
     elif axis is not None and np.linalg.norm(cross(axis, d)) > 0.3:
-        across = _unit(cross(axis, d))
-        closings = _closings(across, cross(d, across), round_body)
+        closings = [_unit(cross(axis, d))]
     else:  # a sphere, or a cylinder arriving end first: any closing direction across d
         e1 = cross(-preferred, d)
-        closings = _closings(e1, cross(d, e1), True)
+        e2 = cross(d, e1)
+        closings = [np.cos(a) * e1 + np.sin(a) * e2 for a in np.radians([0, 45, 90, 135])]
     frames = []
     for x in closings:
         w = cross(x, d)
@@ -140,15 +137,8 @@ def grasp_orientations(d: np.ndarray, axis: np.ndarray | None, preferred: np.nda
     def best_first(frames: list[np.ndarray]) -> list[np.ndarray]:
         return sorted(frames, key=lambda R: -float(R[:, 2] @ preferred))
 
-    facing = [] if outwards is None else _facing_frames(outwards, axis, d, faces, round_body)
+    facing = [] if outwards is None else _facing_frames(outwards, axis, d, faces)
     return best_first(frames) + best_first(facing)
-
-
-def _closings(first: np.ndarray, second: np.ndarray, every: bool) -> list[np.ndarray]:
-    """Closing directions (unit): ``first``, and if ``every``, it turned towards ``second``
-    (unit, ⟂ ``first``) by 45°, 90° and 135° too."""
-    angles = np.radians([0.0, 45.0, 90.0, 135.0] if every else [0.0])
-    return [np.cos(a) * first + np.sin(a) * second for a in angles]
 
 
 def _across(faces: list[np.ndarray], v: np.ndarray) -> list[np.ndarray]:
@@ -158,8 +148,7 @@ def _across(faces: list[np.ndarray], v: np.ndarray) -> list[np.ndarray]:
 
 
 def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None, d: np.ndarray,
-                   faces: list[np.ndarray] | None = None, round_body: bool = False
-                   ) -> list[np.ndarray]:
+                   faces: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """The arm's own family of :func:`grasp_orientations`: z along ``outwards``, along it
     without its part along a cylinder's axis, and turned ±30° about the vertical; per z the
     jaws close across the axis, on a box's faces, or (a sphere) in four directions, across
@@ -178,14 +167,14 @@ def _facing_frames(outwards: np.ndarray, axis: np.ndarray | None, d: np.ndarray,
             continue
         if faces is not None:
             xs = _across(faces, z)
-        elif axis is not None and np.linalg.norm(cross(axis, z)) >= 0.3:
-            across = _unit(cross(axis, z))
-            xs = _closings(across, cross(z, across), round_body)
-        elif axis is not None and not round_body:
-            continue
-        else:  # across the motion first
+        elif axis is not None:
+            if np.linalg.norm(cross(axis, z)) < 0.3:
+                continue
+            xs = [_unit(cross(axis, z))]
+        else:
             first = perpendicular(z, d)
-            xs = _closings(cross(z, first), first, True)
+            other = cross(z, first)
+            xs = [np.cos(a) * other + np.sin(a) * first for a in np.radians([0, 45, 90, 135])]
         frames += [np.column_stack([x, cross(z, x), z]) for x in xs]
     return frames
 

@@ -16,19 +16,10 @@ from wavegrasp.arm.transforms import cross, frame_along
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.schemas import ObjectObservation, Vec3
 
-#: A body this many times longer than it is wide has an axis that matters: the jaws close
-#: across it, and it is turned as the body rocks (see :attr:`Body.long`).
-LONG = 1.5
-
 #: metres: a box's distance is measured exactly below this; beyond it, a lower bound. More
 #: than a link's radius and the clearance asked of it together (6 and 1 cm on our arm): a
 #: link's capsule is nearer than the clearance only where its axis is nearer than that.
 NEAR_M = 0.15
-
-#: metres: how much of the line a tethered object hangs on, straight down from its lowest
-#: point, the arm keeps off (fingers included: they close on the object, not under it)
-LINE_M = 0.3
-LINE_POINTS = 31
 
 #: metres: the most apart the points sampled along a link's axis are where it is checked
 #: against a box (the distance found is at most half this above the true one)
@@ -97,35 +88,15 @@ class Body:
         return cls(msg.radius_m, half, axis, offset=offset)
 
     @property
-    def long(self) -> bool:
-        """Has an axis and is at least :data:`LONG` times as long as it is wide. A body
-        that is not (a sphere perception reports with an axis, a 13 x 15 cm ellipsoid) may
-        be closed on in any direction that fits the jaw: held only across its axis, a 13 cm
-        sphere on an axis set vertical was closed on along its motion and planned 1
-        prediction in 62 (random-7-034)."""
-        return self.axis is not None and self.half_length >= LONG * self.radius
-
-    @property
-    def round(self) -> bool:
-        """Not :attr:`long`, and the middle of its length near its centroid: closed on along
-        its axis, a bottle's neck (its centroid off that middle) puts a finger on the
-        neck's tip (random-11-038: a 13 cm bottle slipped out of the jaw twice)."""
-        return not self.long and abs(self.offset) <= 0.1 * self.half_length
-
-    @property
     def breadth_axis(self) -> np.ndarray | None:
         return None if self.side is None or self.axis is None else cross(self.axis, self.side)
 
     @property
     def faces(self) -> list[np.ndarray] | None:
-        """A box's face normals the jaws may close along: across its axis, thinnest first,
-        then its axis itself unless it is :attr:`long` (an 11.0 x 9.4 x 11.7 cm box swinging
-        level, closed on only across its axis, was closed on along its motion); None for a
-        sphere or cylinder."""
+        """A box's face normals across its axis, thinnest first: the jaws close along one;
+        None for a sphere or cylinder."""
         b = self.breadth_axis
-        if b is None or self.axis is None:
-            return None
-        return [self.side, b] if self.long else [self.side, b, self.axis]
+        return None if b is None else [self.side, b]
 
     @property
     def half_size(self) -> float:
@@ -173,8 +144,8 @@ class Body:
         if self.turns is not None and times is not None:
             frames = self.turns.at(times) @ self.frame
         # The box itself only where a segment comes near the sphere round it; elsewhere
-        # that sphere's gap, a lower bound of at least NEAR_M (planning a box took 8 times
-        # as long as a cylinder, most of it here).
+        # that sphere's gap, a lower bound of at least NEAR_M (most of a box's planning
+        # time was here).
         half = np.array([self.radius, self.half_breadth, self.half_length])
         out = segments_points_distance(p0, p1, centres[:, None, :]) - float(np.linalg.norm(half))
         k, c = np.nonzero(out < NEAR_M)
@@ -279,7 +250,7 @@ def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centres: n
 
 def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
              path: PredictedPath, body: Body, clearance: float, final_from: float,
-             q_stay: np.ndarray | None = None, line: bool = False) -> bool:
+             q_stay: np.ndarray | None = None) -> bool:
     """Does any link come within ``clearance`` of the object at any of ``times`` (shape (k,))
     with the arm at ``q`` (shape (k, n), radians)?
 
@@ -287,12 +258,8 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
     and the rest of the arm may come near, but must not touch. Given ``q_stay`` (shape
     (n,)), a link need come no nearer than the object would come to it over ``times`` with
     the arm staying there: an arm waiting where the object sways through may move out of
-    its way. With ``line``, no link, a finger neither, may touch the line the object hangs
-    on (:func:`line_gaps`): a 9 cm sphere closed on from above and below met its tether
-    with the lower finger in all 6 attempts (random-11-011).
+    its way.
     """
-    if line and np.any(line_gaps(arm, T_world_base, times, q, path, body) < 0.0):
-        return True
     gap = _gaps(arm, T_world_base, times, q, path, body)
     final = times >= final_from
     need = np.where(final[:, None], 0.0, clearance) * np.ones_like(gap)
@@ -302,23 +269,6 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
         staying = _gaps(arm, T_world_base, times, np.tile(q_stay, (len(times), 1)), path, body)
         need = np.minimum(need, staying.min(axis=0))
     return bool(np.any(gap < need))
-
-
-def line_gaps(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
-              path: PredictedPath, body: Body) -> np.ndarray:
-    """Each link's gap, metres, at ``times`` (k,) with the arm at ``q`` (k, n), to the line
-    a tethered object on ``path`` hangs on: :data:`LINE_M` of it straight down from its
-    lowest point, as points spaced along it (the gap is at most half their spacing short):
-    shape (k, links)."""
-    centres = path.at(np.minimum(times, path.times_s[-1])).reshape(-1, 3)
-    down = np.array([0.0, 0.0, -1.0])
-    along = np.linspace(0.0, LINE_M, LINE_POINTS)[None, :, None] * down
-    points = centres[:, None, :] + body.extent(down) * down + along  # (k, points, 3)
-    p0, p1, link_radius = arm.capsules_batch(q)
-    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
-    spacing = LINE_M / (LINE_POINTS - 1)
-    return segments_points_distance(p0 @ R.T + t, p1 @ R.T + t, points) - link_radius + (
-        -spacing / 2)
 
 
 def _gaps(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,

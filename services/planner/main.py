@@ -52,6 +52,11 @@ STANDBY_KEY = "wavegrasp/planner/standby"
 STANDBY_AGAIN_NS = 1_000_000_000  # after a standby move ends, before another may be asked
 
 
+#: A body this many times longer than it is wide has an axis worth turning (see
+#: :meth:`PlannerService.on_observation`).
+LONG = 1.5
+
+
 class PlannerSettings(Settings):
     arm_urdf: str | None = None
     execution_hold_s: float = 1.5
@@ -142,7 +147,8 @@ class PlannerService(Service):
             # degrees a frame, and the collisions its turns made up left nothing planned)
             # and hardly matters.
             orientation = self.body.orientation
-            if orientation is None or (self.body.frame is None and not self.body.long):
+            if orientation is None or (self.body.frame is None
+                                       and self.body.half_length < LONG * self.body.radius):
                 self.frames.clear()
             elif self.misfit(orientation):
                 self.counters["turns: axis misfit skipped"] += 1

@@ -72,9 +72,6 @@ class PlannerConfig(BaseModel):
                                       "prediction's own 1σ exceeds this are not tried (None: "
                                       "half the jaw's widest opening: the object would as "
                                       "likely be outside the open jaw as inside it)")
-    tethered: bool = Field(True, description="the object hangs on a line from its lowest "
-                           "point, as moored and tethered objects do: no link, a finger "
-                           "neither, may touch it (collision.LINE_M of it)")
     ik_max_iter: int = 40
     ik_restarts: int = 0
 
@@ -182,8 +179,7 @@ def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body
     outwards = (p_f - shoulder) / np.linalg.norm(p_f - shoulder)
     towards = np.array([0.0, 0.0, 1.0]) - 0.5 * outwards
     return outwards, towards, grasp_orientations(d, body.axis, -perpendicular(d, towards),
-                                                 outwards=outwards, faces=body.faces,
-                                                 round_body=body.round)
+                                                 outwards=outwards, faces=body.faces)
 
 
 def cheap_rejection(arm: ArmModel, R: np.ndarray, outwards: np.ndarray, body: Body,
@@ -285,8 +281,7 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
     qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
     final_from = t_g - d_path + approach.spline.x[-2]
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from,
-                line=cfg.tethered):
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
     sigma = float(np.interp(t_g, path.times_s, path.sigma))
