@@ -22,7 +22,7 @@ from wavegrasp.planner.approach import (
 )
 from wavegrasp.planner.collision import NEAR_M, Body, Turns, clearance, collides, hand_hits
 from wavegrasp.planner.main import PlannerService, PlannerSettings
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
@@ -75,6 +75,31 @@ def test_plans_at_most_phases_of_the_swing(arm: ArmModel, T_world_base: np.ndarr
     planned = [isinstance(plan_grasp(prediction(now), now, arm, T_world_base, arm.q_home, BODY,
                                      PlannerConfig(grasp_time=rule)), Plan) for now in phases]
     assert sum(planned) >= least, planned
+
+
+def test_the_last_plans_grasp_is_tried_first_where_the_swing_comes_back_to_it(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:
+    """A grasp that planned once is tried first at the same phase of the swing and in the
+    same orientation: the planner's own order prefers another phase here."""
+    first = plan_grasp(prediction(10.1), 10.1, arm, T_world_base, arm.q_home, BODY,
+                       PlannerConfig())
+    assert isinstance(first, Plan)
+    path = prediction(10.5)
+    hint = Hint(first.grasp_T_world, motion_direction(prediction(10.1), first.t_grasp))
+    own = plan_grasp(path, 10.5, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
+    again = plan_grasp(path, 10.5, arm, T_world_base, arm.q_home, BODY, PlannerConfig(), hint)
+    assert isinstance(own, Plan) and isinstance(again, Plan)
+    period = 2 * np.pi / OMEGA
+
+    def phase(t: float) -> float:  # 0 at the first plan's grasp, wrapped to (-0.5, 0.5]
+        return (t - first.t_grasp) / period - np.round((t - first.t_grasp) / period)
+
+    assert abs(phase(own.t_grasp)) > 0.2  # the planner alone goes elsewhere
+    assert abs(phase(again.t_grasp)) < 0.05
+    np.testing.assert_allclose(again.grasp_T_world[:3, :3], first.grasp_T_world[:3, :3],
+                               atol=1e-9)
+    np.testing.assert_allclose(again.grasp_T_world[:3, 3], first.grasp_T_world[:3, 3],
+                               atol=0.01)
 
 
 @pytest.mark.parametrize("now", [10.0, 10.8, 10.9])

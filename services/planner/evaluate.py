@@ -13,9 +13,9 @@ from mcap.reader import make_reader
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
-from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.approach import PredictedPath, motion_direction
 from wavegrasp.planner.collision import Body
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_pose
 from wavegrasp.predictor.models import make_predictor
 from wavegrasp.recording_io.ros_msgs import decode_pose
@@ -44,6 +44,7 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
     times, errors, attempts, plans, rejected = [], [], 0, 0, Counter()
+    hint = None
     seen = track.centres[(track.stamps_ns - track.stamps_ns[0]) * 1e-9 < warmup_s]
     q_standby = standby_pose(arm, T_world_base, seen[-100:], body)
     for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
@@ -57,8 +58,10 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
         path = PredictedPath(f.t0 + f.leads, f.positions, np.nan_to_num(f.sigma, nan=1.0),
                              f.period_s)
         start = time.perf_counter()
-        plan = plan_grasp(path, t, arm, T_world_base, q_standby, body, cfg)
+        plan = plan_grasp(path, t, arm, T_world_base, q_standby, body, cfg, hint)
         times.append((time.perf_counter() - start) * 1e3)
+        if isinstance(plan, Plan):  # as the service does
+            hint = Hint(plan.grasp_T_world, motion_direction(path, plan.t_grasp))
         plans += isinstance(plan, Plan)
         if not isinstance(plan, Plan):
             rejected.update(plan)

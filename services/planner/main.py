@@ -23,9 +23,9 @@ from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
-from wavegrasp.planner.approach import PredictedPath
+from wavegrasp.planner.approach import PredictedPath, motion_direction
 from wavegrasp.planner.collision import Body, Turns
-from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_poses
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
@@ -123,6 +123,7 @@ class PlannerService(Service):
         #: How a box or long body has been turned lately: (stamp ns, :attr:`Body.orientation`).
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
+        self._hint: Hint | None = None  # the last plan's grasp, tried first next time
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
@@ -204,8 +205,10 @@ class PlannerService(Service):
             hold = int(self.cfg.execution_hold_s * 1e9)
             self.busy_until_ns = self._t_grasp.get(msg.plan_id, self.clock.now_ns()) + hold
 
-    def on_outcome(self, _msg: GraspOutcome, _d: Delivery) -> None:
+    def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
         self.busy_until_ns = 0
+        if not msg.success:  # a grasp that failed is not the one to try first again
+            self._hint = None
 
     def on_prediction(self, msg: MotionPrediction, d: Delivery) -> None:
         """Keep only the newest: planning takes longer than predictions come when candidates
@@ -285,7 +288,7 @@ class PlannerService(Service):
             raise ValueError(f"no transform to the arm's mount: {exc}") from None
         path = PredictedPath.from_message(msg)
         result = plan_grasp(path, msg.header.stamp_ns * 1e-9, self.arm, T_world_base,
-                            self.q_now, self.turning(path.period_s), self.config)
+                            self.q_now, self.turning(path.period_s), self.config, self._hint)
         if not isinstance(result, Plan):
             self.counters["no plan"] += 1
             for reason, n in result.items():
@@ -294,6 +297,7 @@ class PlannerService(Service):
             return
         self.counters["plans"] += 1
         self._failing_since_ns = None
+        self._hint = Hint(result.grasp_T_world, motion_direction(path, result.t_grasp))
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
                           self.standby(T_world_base, msg.header.stamp_ns))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
@@ -353,6 +357,7 @@ class PlannerService(Service):
                             self.turning(path.period_s), self.config)
         if not isinstance(result, Plan):
             return None
+        self._hint = Hint(result.grasp_T_world, motion_direction(path, result.t_grasp))
         move = standby_move(self.arm, T_world_base, self.q_now, poses[j], path, now_ns * 1e-9,
                             self.body, self.config, via=self.other_standbys(j))
         if isinstance(move, str):  # tried again when its turn comes round

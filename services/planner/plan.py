@@ -99,11 +99,23 @@ class Plan:
     candidates: list[np.ndarray] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class Hint:
+    """Where, how and as the object moved when the last plan grasped it: ``T_grasp`` (4, 4),
+    world; ``d`` (3,), unit, the motion there. The swing repeats, so the same phase of it a
+    period later, from the same pose of the arm, is most likely feasible again."""
+
+    T_grasp: np.ndarray
+    d: np.ndarray
+
+
 def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.ndarray,
-               q_now: np.ndarray, body: Body, cfg: PlannerConfig) -> Plan | Counter:
+               q_now: np.ndarray, body: Body, cfg: PlannerConfig,
+               hint: Hint | None = None) -> Plan | Counter:
     """The best feasible plan, or a Counter of why every candidate was rejected.
 
-    body : the object's size and directions, metres, world.
+    body : the object's size and directions, metres, world. hint : the last plan's grasp,
+    tried first (at the time the path comes back to it, in its orientation).
     """
     rejected: Counter = Counter()
     base_world = T_world_base[:3, 3]
@@ -124,6 +136,8 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not times and (path.times_s >= earliest).any():
         rejected["prediction too uncertain"] += 1
         return rejected
+    if hint is not None and times:
+        times.insert(0, times.pop(_again(path, times, hint)))
     for t_g in times:
         if t_g < start + need:
             continue
@@ -136,6 +150,8 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         quickest, tried_here = np.inf, 0
         here = body.at(t_g)  # as it will be turned then
         outwards, towards, frames = tool_orientations(p_f, d, shoulder, here)
+        if hint is not None and t_g == times[0]:
+            frames = [hint.T_grasp[:3, :3], *frames]
         for R in frames:
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
@@ -168,6 +184,16 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not rejected:
         rejected["no grasp time in the prediction"] += 1
     return rejected
+
+
+def _again(path: PredictedPath, times: list[float], hint: Hint) -> int:
+    """The index of the time in ``times`` at which the object comes back nearest where and
+    as it moved at the ``hint``'s grasp (a centimetre of position weighs as much as 6
+    degrees of direction)."""
+    d = np.array([motion_direction(path, t) for t in times])
+    miss = (np.linalg.norm(path.at(np.array(times)) - hint.T_grasp[:3, 3], axis=1)
+            + 0.1 * np.linalg.norm(d - hint.d, axis=1))
+    return int(np.argmin(miss))
 
 
 def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body: Body
