@@ -136,8 +136,8 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not times and (path.times_s >= earliest).any():
         rejected["prediction too uncertain"] += 1
         return rejected
-    if hint is not None and times:
-        times.insert(0, times.pop(_again(path, times, hint)))
+    again = _again(path, times, hint) if hint is not None and times else []
+    times = again + [t for t in times if t not in again]
     for t_g in times:
         if t_g < start + need:
             continue
@@ -150,7 +150,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         quickest, tried_here = np.inf, 0
         here = body.at(t_g)  # as it will be turned then
         outwards, towards, frames = tool_orientations(p_f, d, shoulder, here)
-        if hint is not None and t_g == times[0]:
+        if t_g in again:
             frames = [hint.T_grasp[:3, :3], *frames]
         for R in frames:
             T_grasp = np.eye(4)
@@ -186,14 +186,24 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     return rejected
 
 
-def _again(path: PredictedPath, times: list[float], hint: Hint) -> int:
-    """The index of the time in ``times`` at which the object comes back nearest where and
-    as it moved at the ``hint``'s grasp (a centimetre of position weighs as much as 6
-    degrees of direction)."""
+def _again(path: PredictedPath, times: list[float], hint: Hint) -> list[float]:
+    """The times in ``times``, soonest first, at which the object comes back nearest where
+    and as it moved at the ``hint``'s grasp, one per period, at most two (a centimetre of
+    position weighs as much as 6 degrees of direction): the last plan's grasp time comes
+    nearer with each prediction until the arm can no longer make it, and then the next
+    period's is the one."""
     d = np.array([motion_direction(path, t) for t in times])
     miss = (np.linalg.norm(path.at(np.array(times)) - hint.T_grasp[:3, 3], axis=1)
             + 0.1 * np.linalg.norm(d - hint.d, axis=1))
-    return int(np.argmin(miss))
+    best: list[float] = []
+    for i in np.argsort(miss, kind="stable"):
+        if miss[i] > miss.min() + 0.03:  # no other period comes back to it
+            break
+        if all(abs(times[i] - t) > path.period_s / 2 for t in best):
+            best.append(times[i])
+        if len(best) == 2:
+            break
+    return sorted(best)
 
 
 def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body: Body
