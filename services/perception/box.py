@@ -17,10 +17,15 @@ A sphere or cylinder fit of a box never settled (an 8 x 5 x 15 cm box was never 
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
-from wavegrasp.perception.fit import MIN_THRESHOLD, ShapeFit, check_points, check_vector
+from wavegrasp.perception.fit import (
+    MIN_THRESHOLD,
+    ShapeFit,
+    check_points,
+    check_vector,
+    segment_plane,
+)
 
 FACE_MIN_POINTS = 12  # a face needs this many points (and 3 % of the object's) to count
 SQUARE = 0.25  # |cos| between two faces' normals above this: not two faces of one box
@@ -38,11 +43,8 @@ def _faces(p: np.ndarray, viewpoint: np.ndarray) -> list[tuple[np.ndarray, float
     """Up to three faces, each (unit normal towards the camera, offset d: n·x = d on the face,
     indices of its points)."""
     left, faces = np.arange(len(p)), []
-    o3d.utility.random.seed(0)  # RANSAC: the same cloud gives the same faces
     while len(faces) < 3 and len(left) >= FACE_MIN_POINTS:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[left]))
-        _, inl = pcd.segment_plane(MIN_THRESHOLD, 3, 200)
-        idx = left[np.asarray(inl, dtype=int)]
+        idx = left[segment_plane(p[left], MIN_THRESHOLD)[1]]
         if len(idx) < max(FACE_MIN_POINTS, 0.03 * len(p)):
             break
         q = p[idx]

@@ -20,7 +20,7 @@ import open3d as o3d
 from pydantic import BaseModel, Field
 from scipy.spatial import cKDTree
 
-from wavegrasp.perception.fit import ShapeFit, check_points
+from wavegrasp.perception.fit import ShapeFit, check_points, segment_plane
 from wavegrasp.perception.shape import fit_shape
 
 
@@ -71,11 +71,10 @@ def fit_seabed(points: np.ndarray, viewpoint: np.ndarray) -> np.ndarray | None:
     pcd = pcd.voxel_down_sample(0.02)
     if len(pcd.points) < 100:
         return None
-    o3d.utility.random.seed(0)  # RANSAC: the same cloud gives the same plane
-    plane, inliers = pcd.segment_plane(0.01, 3, 200)
+    plane, inliers = segment_plane(np.asarray(pcd.points), 0.01)
     if len(inliers) < 0.3 * len(pcd.points):
         return None
-    plane = np.asarray(plane) / np.linalg.norm(plane[:3])
+    plane = plane / np.linalg.norm(plane[:3])
     return -plane if plane[:3] @ viewpoint + plane[3] < 0 else plane
 
 
