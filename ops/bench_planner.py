@@ -7,9 +7,10 @@ collision-free plan, the planning time (median, p90) and how far the planned gra
 is from where the object truly is at the grasp time (median).
 
 ``--suite SEED --scenarios N`` does the same on the random suite's first N scenarios drawn
-with SEED (30 s recordings; those the arm cannot grasp at all are listed, not scored), with
-the most frequent rejections of each. As in the paper's configurations, the planner is given
-the object's true size (perception's is what it gets in a run).
+with SEED (30 s recordings, or ``--only I,J`` of them at ``--seconds``; those the arm
+cannot grasp at all are listed, not scored), with
+the most frequent rejections of each. The planner is given the object as perception last
+reported it, and each plan's grasp is tried first on the next prediction, as in a run.
 """
 
 from __future__ import annotations
@@ -47,9 +48,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--suite", type=int, metavar="SEED",
                    help="score the random suite's scenarios drawn with SEED instead")
     p.add_argument("--scenarios", type=int, default=8)
+    p.add_argument("--only", metavar="I,J", help="with --suite: only these scenarios (their "
+                   "numbers, as in random-SEED-NNN), drawn with --seconds")
     a = p.parse_args(argv)
     if a.suite is not None:
-        return suite(a.suite, a.scenarios)
+        only = None if a.only is None else [int(i) for i in a.only.split(",")]
+        return suite(a.suite, a.scenarios, only, a.seconds if only else 30.0)
     print("| wave | object | planned | planning median (ms) | p90 (ms) | grasp error median (mm) |")
     print("|---|---|---|---|---|---|")
     all_times, all_errors, planned, attempts = [], [], 0, 0
@@ -74,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def suite(seed: int, count: int) -> int:
+def suite(seed: int, count: int, only: list[int] | None = None, seconds: float = 30.0
+          ) -> int:
     from scipy.spatial.transform import Rotation
 
     from wavegrasp.wavetank.record import arm_mount
@@ -84,7 +89,9 @@ def suite(seed: int, count: int) -> int:
           "| p90 (ms) | most rejected |")
     print("|---|---|---|---|---|---|---|")
     rates = []
-    for s in draw_scenarios(count, seed, seconds=30.0)[0]:
+    for s in draw_scenarios(count, seed, seconds=seconds)[0]:
+        if only is not None and int(s.name.rsplit("-", 1)[1]) not in only:
+            continue
         verdict = grasp_verdict(s)
         if verdict:
             print(f"| {s.name} | {s.object.family} | | not scored: {verdict} | | | |")
