@@ -39,7 +39,8 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
     """Feed perception's centroids to the default predictor and plan on every warm forecast
     after ``warmup_s``, from the arm's standby pose facing where the object was seen during
     the warm-up (:func:`~wavegrasp.planner.standby.standby_pose`, where the arm waits between
-    attempts). ``body``: the object as perception reports it."""
+    attempts), each plan's grasp tried first on the next prediction as the service does.
+    ``body``: the object as perception reports it."""
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9

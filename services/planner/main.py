@@ -4,8 +4,10 @@ For each warm ``wavegrasp/predictor/prediction`` while no approved plan is execu
 grasp (:func:`~wavegrasp.planner.plan.plan_grasp`) for the arm on its mount from ``tf_static``,
 starting from its latest ``wavegrasp/sim/arm_state`` (its home pose until one arrives), and
 publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from where the idle arm
-is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The arm model
-is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
+is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The last
+plan's grasp is tried first on the next prediction (:class:`~wavegrasp.planner.plan.Hint`),
+until a grasp fails. The arm model is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's
+own description.
 """
 
 from __future__ import annotations
