@@ -27,7 +27,13 @@ from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
 from wavegrasp.runtime.trace import new_header
-from wavegrasp.schemas import MotionPrediction, ObjectObservation, PredictionSample, Vec3
+from wavegrasp.schemas import (
+    GraspOutcome,
+    MotionPrediction,
+    ObjectObservation,
+    PredictionSample,
+    Vec3,
+)
 from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import paper_scenario
 from wavegrasp.wavetank.suite import mount_at
@@ -258,6 +264,21 @@ def test_a_rocking_bottle_is_checked_turned_as_it_will_be(router: Router) -> Non
                                           np.array(probe[1])[None, None], centre[None],
                                           np.array([4.5]))[0, 0] > 0.03
     assert body.at(4.5).extent(-tilted) == pytest.approx(0.19, abs=0.01)
+
+
+def test_a_grasp_that_failed_is_not_tried_first_again(router: Router) -> None:
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        hint = Hint(np.eye(4), np.array([1.0, 0.0, 0.0]))
+        for success, kept in ((True, True), (False, False)):
+            service._hint = hint
+            service.on_outcome(GraspOutcome(
+                header=new_header("sim", 0, 0), plan_id="1-1", trial=0, attempt=0,
+                success=success, failure=None if success else "collision"),
+                Delivery("o", b"", "", None, 0, 0))
+            assert (service._hint is hint) == kept
+    finally:
+        service.bus.close()
 
 
 def test_an_arm_waiting_where_the_object_sways_through_moves_out_of_its_way(
