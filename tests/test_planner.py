@@ -91,7 +91,7 @@ def test_the_last_plans_grasp_is_tried_first_where_the_swing_comes_back_to_it(
                        PlannerConfig())
     assert isinstance(first, Plan)
     path = prediction(10.5)
-    hint = Hint(first.grasp_T_world, motion_direction(prediction(10.1), first.t_grasp))
+    hint = Hint.of(first, prediction(10.1))
     own = plan_grasp(path, 10.5, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
     again = plan_grasp(path, 10.5, arm, T_world_base, arm.q_home, BODY, PlannerConfig(), hint)
     assert isinstance(own, Plan) and isinstance(again, Plan)

@@ -13,7 +13,7 @@ from mcap.reader import make_reader
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
-from wavegrasp.planner.approach import PredictedPath, motion_direction
+from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_pose
@@ -62,7 +62,7 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
         plan = plan_grasp(path, t, arm, T_world_base, q_standby, body, cfg, hint)
         times.append((time.perf_counter() - start) * 1e3)
         if isinstance(plan, Plan):  # as the service does
-            hint = Hint(plan.grasp_T_world, motion_direction(path, plan.t_grasp))
+            hint = Hint.of(plan, path)
         plans += isinstance(plan, Plan)
         if not isinstance(plan, Plan):
             rejected.update(plan)

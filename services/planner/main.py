@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.checks import StampOrder
-from wavegrasp.planner.approach import PredictedPath, motion_direction
+from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, Turns
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_poses
@@ -299,7 +299,7 @@ class PlannerService(Service):
             return
         self.counters["plans"] += 1
         self._failing_since_ns = None
-        self._hint = Hint(result.grasp_T_world, motion_direction(path, result.t_grasp))
+        self._hint = Hint.of(result, path)
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
                           self.standby(T_world_base, msg.header.stamp_ns))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
@@ -359,7 +359,7 @@ class PlannerService(Service):
                             self.turning(path.period_s), self.config)
         if not isinstance(result, Plan):
             return None
-        self._hint = Hint(result.grasp_T_world, motion_direction(path, result.t_grasp))
+        self._hint = Hint.of(result, path)
         move = standby_move(self.arm, T_world_base, self.q_now, poses[j], path, now_ns * 1e-9,
                             self.body, self.config, via=self.other_standbys(j))
         if isinstance(move, str):  # tried again when its turn comes round

@@ -108,6 +108,11 @@ class Hint:
     T_grasp: np.ndarray
     d: np.ndarray
 
+    @classmethod
+    def of(cls, plan: Plan, path: PredictedPath) -> Hint:
+        """The hint a ``plan`` made on ``path`` leaves for the next prediction."""
+        return cls(plan.grasp_T_world, motion_direction(path, plan.t_grasp))
+
 
 def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.ndarray,
                q_now: np.ndarray, body: Body, cfg: PlannerConfig,
