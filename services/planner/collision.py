@@ -236,15 +236,17 @@ def segments_points_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> n
 
 def clearance(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, centres: np.ndarray,
               body: Body) -> float:
-    """The smallest gap, metres, between the arm at ``q`` (shape (n,), radians) and the
-    object at any of ``centres`` (shape (k, 3) or (3,), metres, world); negative where they
-    overlap."""
-    p0, p1, link_radius = arm.capsules_batch(np.asarray(q)[None])
+    """The smallest gap, metres, between the arm at ``q`` (shape (n,), or (k, n): each of
+    k poses, radians) and the object at any of ``centres`` (shape (m, 3) or (3,), metres,
+    world); negative where they overlap."""
+    q = np.atleast_2d(q)
+    p0, p1, link_radius = arm.capsules_batch(q)  # (k, links, 3)
     R, t = T_world_base[:3, :3], T_world_base[:3, 3]
     centres = np.reshape(centres, (-1, 3))
-    shape = (len(centres), *p0.shape[1:])
-    gap = body.gaps(np.broadcast_to(p0 @ R.T + t, shape), np.broadcast_to(p1 @ R.T + t, shape),
-                    centres)
+    m = len(centres)
+    # Every pose against every centre: (k * m) rows.
+    p0, p1 = (np.repeat(p @ R.T + t, m, axis=0) for p in (p0, p1))
+    gap = body.gaps(p0, p1, np.tile(centres, (len(q), 1)))
     return float(np.min(gap - link_radius))
 
 

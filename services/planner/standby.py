@@ -104,7 +104,8 @@ def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
 
 def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
                  q_standby: np.ndarray, path: PredictedPath, now: float, body: Body,
-                 cfg: PlannerConfig, via: list[np.ndarray] | tuple = ()
+                 cfg: PlannerConfig, via: list[np.ndarray] | tuple = (),
+                 swept: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """The idle arm's move from ``q_now`` to ``q_standby`` (radians, shape (n,)), starting
     ``start_delay_s`` after ``now``, at rest at both ends: times (k,) s, q and qd (k, n); or
@@ -115,7 +116,11 @@ def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
     of it) that keeps the whole move clear: from one standby to its mirror image on the
     object's far side the first joint turns 3 rad through the object (random-7-034). An
     arm already in the object's way moves if it comes no nearer than staying would (the
-    home pose of random-7-000 is 5 cm inside the sway: every move from it collided)."""
+    home pose of random-7-000 is 5 cm inside the sway: every move from it collided).
+
+    Given ``swept`` (shape (m, 3), metres, world: where the object has been seen), the move
+    keeps clear of the object at every one of them all the time, not of the ``path``: for
+    a prediction not yet trusted (the predictor still warming up)."""
     if np.abs(q_standby - q_now).max() < cfg.standby_tolerance_rad:
         return "already there"
     zero = np.zeros(len(q_now))
@@ -130,10 +135,22 @@ def standby_move(arm: ArmModel, T_world_base: np.ndarray, q_now: np.ndarray,
             parts.append((times, q, qd) if not parts else (times[1:], q[1:], qd[1:]))
             start = times[-1]
         times, q, qd = (np.concatenate(x) for x in zip(*parts, strict=True))
-        if not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf,
-                        q_stay=q_now):
+        if swept is not None:
+            if _clear_of(arm, T_world_base, q, q_now, swept, body, cfg.clearance_m):
+                return times, q, qd
+        elif not collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, np.inf,
+                          q_stay=q_now):
             return times, q, qd
     return "collision"
+
+
+def _clear_of(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray, q_stay: np.ndarray,
+              swept: np.ndarray, body: Body, need_m: float, every: int = 5) -> bool:
+    """Do the poses ``q`` (k, n), radians, every ``every``-th and the last (samples 0.02 s
+    apart: a tenth of a second), keep ``need_m`` from the object at any of ``swept`` (m, 3),
+    metres, world, or at least as far as staying at ``q_stay`` would?"""
+    need = min(need_m, clearance(arm, T_world_base, q_stay, swept, body))
+    return clearance(arm, T_world_base, np.vstack([q[::every], q[-1:]]), swept, body) >= need
 
 
 def _ready_directions(out: np.ndarray) -> list[tuple[np.ndarray, float]]:
