@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import queue
+import time
 from collections import Counter
 from dataclasses import replace
 
@@ -21,14 +24,16 @@ from wavegrasp.planner.approach import (
     waypoints,
 )
 from wavegrasp.planner.collision import NEAR_M, Body, Turns, clearance, collides, hand_hits
-from wavegrasp.planner.main import PlannerService, PlannerSettings
+from wavegrasp.planner.main import PLAN_KEY, STANDBY_KEY, PlannerService, PlannerSettings
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
+    ArmStandby,
     GraspOutcome,
+    GraspPlan,
     MotionPrediction,
     ObjectObservation,
     PredictionSample,
@@ -372,6 +377,57 @@ def delivered(path: PredictedPath, now: float) -> tuple[MotionPrediction, Delive
     return msg, Delivery("p", b"", "", None, 0, 0)
 
 
+def test_while_the_predictor_warms_up_the_arm_moves_to_its_standby_and_nothing_is_planned(
+        router: Router, arm: ArmModel) -> None:
+    """A mount turned away from the object: from the home pose nothing plans. On forecasts
+    not yet warm the planner publishes no plan (none is counted either) but has the arm move
+    to its standby, keeping clear of everywhere the object was seen; the first warm forecast
+    after the move is planned from there."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    listener = router.bus("listener")
+    moves: list[ArmStandby] = []
+    plans: list[GraspPlan] = []
+    listener.subscribe(STANDBY_KEY, lambda m, d: moves.append(m), ArmStandby)
+    listener.subscribe(PLAN_KEY, lambda m, d: plans.append(m), GraspPlan)
+
+    def wait_for(got: list) -> None:
+        deadline = time.monotonic() + 10.0
+        while not got and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):
+                listener.dispatch(listener.inbox.get(timeout=0.1))
+
+    time.sleep(0.5)  # the listener's subscriptions reach the router
+    try:
+        T_world_base = np.eye(4)
+        T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
+        service.tf.update([("world", arm.base_link, T_world_base)])
+        for t in np.arange(0.0, 3.0, 0.1):
+            service.see(swing(np.array([t]))[0], int(t * 1e9))
+        cold = delivered(prediction(3.0), 3.0)
+        cold[0].warm = False
+        service.plan(*cold)
+        assert service.counters["standby moves"] == 0  # 3 s seen: not yet all of the swing
+        for t in np.arange(3.0, 5.0, 0.1):
+            service.see(swing(np.array([t]))[0], int(t * 1e9))
+        cold = delivered(prediction(5.0), 5.0)
+        cold[0].warm = False
+        service.plan(*cold)
+        assert service.counters["standby moves"] == 1, told(service)
+        assert service.counters["plans"] + service.counters["no plan"] == 0, told(service)
+        wait_for(moves)
+        q = np.array([s.positions for s in moves[0].joint_trajectory])
+        assert clearance(arm, T_world_base, q, np.array(service.seen), service.body) > 0.0
+        service.q_now = q[-1]
+        end = moves[0].joint_trajectory[-1].t_ns * 1e-9
+        service.plan(*delivered(prediction(end + 0.1), end + 0.1))
+        assert service.counters["plans"] == 1, told(service)
+        wait_for(plans)
+        assert len(plans) == 1
+    finally:
+        listener.close()
+        service.bus.close()
+
+
 def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
                                                                arm: ArmModel) -> None:
     """A mount turned away from the object: no grasp from the home pose, so the planner asks
@@ -382,7 +438,8 @@ def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
         T_world_base = np.eye(4)
         T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
         service.tf.update([("world", arm.base_link, T_world_base)])
-        service.seen.extend(swing(np.arange(0.0, 10.0, 0.1)))
+        for t in np.arange(0.0, 10.0, 0.1):
+            service.see(swing(np.array([t]))[0], int(t * 1e9))
 
         def predict(now: float) -> tuple[MotionPrediction, Delivery]:
             return delivered(prediction(now), now)
@@ -608,7 +665,8 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
         T = mounted(rest, 0.548, -178.5, -0.379, 18.0)
         path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
         service.tf.update([("world", arm.base_link, T)])
-        service.seen.extend(np.vstack([path(0.0).positions, path(4.0).positions]))
+        for k, p in enumerate(np.vstack([path(0.0).positions, path(4.0).positions])):
+            service.see(p, k * 100_000_000)
         service.body = Body(0.066)
         poses = standby_poses(arm, T, np.array(service.seen), service.body)
         planned = [sum(isinstance(plan_grasp(path(now), now, arm, T, q, service.body,

@@ -7,8 +7,8 @@ publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from wh
 is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The last
 plan's grasp is tried first on the next prediction (:class:`~wavegrasp.planner.plan.Hint`),
 until a grasp fails. While the predictor warms up, its forecasts are planned on only to
-move the arm to its standby and find the grasp to try first. The arm model is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's
-own description.
+move the arm to its standby and find the grasp to try first. The arm model is ours unless
+``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
 """
 
 from __future__ import annotations
@@ -144,9 +144,8 @@ class PlannerService(Service):
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if msg.centroid is not None:  # where the object sways: the arm waits facing it
-            c = np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z])
-            self.seen.append(c)
-            self._seen_ns.append(msg.header.stamp_ns)
+            self.see(np.array([msg.centroid.x, msg.centroid.y, msg.centroid.z]),
+                     msg.header.stamp_ns)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             self.body = Body.from_observation(msg)
             # A box's faces fix its orientation, a long body's outline its axis: both rock
@@ -163,6 +162,11 @@ class PlannerService(Service):
                 self.counters["turns: axis misfit skipped"] += 1
             else:
                 self.frames.append((msg.header.stamp_ns, orientation))
+
+    def see(self, centroid: np.ndarray, stamp_ns: int) -> None:
+        """The object's centroid, shape (3,), metres, world, observed at ``stamp_ns``."""
+        self.seen.append(centroid)
+        self._seen_ns.append(stamp_ns)
 
     def misfit(self, orientation: np.ndarray) -> bool:
         """Is a round body's axis (``orientation``'s third column) a misfit: turned more
