@@ -171,6 +171,30 @@ def test_a_slow_camera_needs_fewer_matches_but_still_a_full_window() -> None:
     assert gate.required_matches() == 6
 
 
+def test_perception_reporting_few_frames_fills_the_window_from_just_before_it() -> None:
+    """A 10 Hz camera, perception reporting 4 frames in 10 (a box too uncertain to report in
+    the others): every 2 s window holds 8 errors, never min_matches (10). The latest errors
+    before the window make up the number; those older than two windows never do."""
+    gate, rng = Gate(), np.random.default_rng(0)
+    for i in range(41):  # 0 .. 4 s every 0.1 s
+        t = i / 10
+        obs = observation(t, rng.normal(0, 0.001, 3))
+        if i % 10 >= 4:
+            obs = obs.model_copy(update={"centroid": None})
+        gate.on_observation(obs)
+        gate.on_prediction(prediction(t))
+    assert gate.required_matches() == 10
+    assert len([e for e in gate.errors if e.t_ns >= ns(2.05)]) < 10
+    d = decide(gate, plan(4.0, 4.3, 5.0), now_s=4.05)
+    assert d.go and d.matches == 10, d.reason
+    for i in range(41, 61):  # 2 s more with no centroid at all: 7 errors within 4 s
+        gate.on_observation(observation(i / 10, np.zeros(3)).model_copy(
+            update={"centroid": None}))
+        gate.on_prediction(prediction(i / 10))
+    d = decide(gate, plan(6.0, 6.3, 7.0), now_s=6.05)
+    assert not d.go and "warming up" in d.failed, d.reason
+
+
 def test_one_plan_executes_at_a_time() -> None:
     gate = Gate()
     feed(gate)
