@@ -61,12 +61,19 @@ def markdown(results: list, settings: dict) -> str:
         counts = [sum(r.failures.get(k, 0) for r in results if r.predictor == p)
                   for k in FAILURES]
         lines.append(f"| {p} | " + " | ".join(str(c) for c in counts) + " |")
-    unfinished = sum(r.unfinished for r in results)
-    if unfinished:
-        lines += ["", f"{unfinished} trials did not end before their recording did (counted "
-                  "as failures)."]
+    lines += unfinished_lines(results)
     lines += ["", "![success](success.png)", "", "![failures](failures.png)", ""]
     return "\n".join(lines)
+
+
+def unfinished_lines(results: list) -> list[str]:
+    """The report's note of trials the recording ended first (never begun: the object never
+    observed or never predicted), if any."""
+    unfinished = sum(r.unfinished for r in results)
+    if not unfinished:
+        return []
+    return ["", f"{unfinished} trials did not end before their recording did (counted as "
+            "failures)."]
 
 
 def plot_success(path: Path, results: list) -> None:

@@ -45,7 +45,8 @@ PER_ATTEMPT_S = 8.0
 class ScenarioResult(Trials):
     """One predictor on one drawn scenario; as :class:`~wavegrasp.ops.experiment.RunResult`,
     plus the scenario's factors and the planner's counts: warm predictions it planned on
-    (the arm at rest) and plans it made."""
+    (the arm at rest) and plans it made; the share of camera frames perception reported the
+    object in."""
 
     predictor: str
     scenario: str
@@ -53,6 +54,7 @@ class ScenarioResult(Trials):
     planned_on: int = 0
     plans: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
+    observed: float = 1.0
 
     @property
     def plan_rate(self) -> float:
@@ -90,8 +92,18 @@ def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
                 if k.startswith("rejected: ")}
     return ScenarioResult(predictor, scenario.name, factors(scenario),
                           plans + int(counters.get("no plan", 0)), plans, rejected,
+                          observed_share(summary),
                           trials=trials, success_attempt=success, failures=failures,
                           unfinished=unfinished, seconds=seconds, exit_code=code)
+
+
+def observed_share(summary: dict) -> float:
+    """The share of camera frames perception reported the object's centroid in (its
+    counters: ``observed`` and every ``missing: ...``); 0 without any frame."""
+    counters = summary.get("services", {}).get("perception", {}).get("counters", {})
+    observed = int(counters.get("observed", 0))
+    missed = sum(int(v) for k, v in counters.items() if k.startswith("missing"))
+    return observed / (observed + missed) if observed + missed else 0.0
 
 
 def _recording(scenario: Scenario) -> Path:

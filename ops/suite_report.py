@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wavegrasp.ops.report import FAILURES
+from wavegrasp.ops.report import FAILURES, unfinished_lines
 
 #: Buckets per numeric factor (equal counts of scenarios in each).
 BUCKETS = 3
@@ -90,23 +90,25 @@ def markdown(results: list, settings: dict, out_of_reach: dict[str, str],
                 lines.append(f"| {factor} | {label} | {g['scenarios']} | "
                              f"{g['first_attempt']:.0%} | {g['after_reattempts']:.0%} | "
                              f"{g['plan_rate']:.0%} |")
-        lines += ["", "| scenario | object | bearing | yaw | distance | period | success | "
-                  "plan rate | top rejections | failures |", "|---|---|---|---|---|---|---|---|"
-                  "---|---|"]
+        lines += ["", "| scenario | object | bearing | yaw | distance | period | observed | "
+                  "success | plan rate | top rejections | failures |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in mine:
             f = r.factors
             top = ", ".join(f"{k} {v}" for k, v in sorted(r.rejected.items(),
                                                           key=lambda kv: -kv[1])[:2])
-            fails = ", ".join(f"{k} {v}" for k, v in r.failures.items())
+            fails = ", ".join([f"{k} {v}" for k, v in r.failures.items()]
+                              + ([f"unfinished {r.unfinished}"] if r.unfinished else []))
             lines.append(f"| {r.scenario} | {f['object']} {f['size (m)'] * 100:.0f} cm | "
                          f"{f['mount bearing (deg)']:.0f} | {f['mount yaw (deg)']:.0f} | "
                          f"{f['distance (m)']:.2f} | {f['period (s)']:.2f} | "
+                         f"{r.observed:.0%} | "
                          f"{r.rate(1):.0%} / {r.rate(99):.0%} | {r.plan_rate:.0%} | {top} | "
                          f"{fails} |")
         lines += ["", "Failed attempts by kind:", "", "| " + " | ".join(FAILURES) + " |",
                   "|" + "---|" * len(FAILURES),
                   "| " + " | ".join(str(sum(r.failures.get(k, 0) for r in mine))
-                                    for k in FAILURES) + " |", ""]
+                                    for k in FAILURES) + " |", *unfinished_lines(mine), ""]
     lines += ["## Not run: judged out of reach from the arm model", ""]
     lines += [f"- {name}: {why}" for name, why in out_of_reach.items()] or ["- none"]
     lines += ["", f"{len(redrawn)} draws could not be and were drawn again.", "",
