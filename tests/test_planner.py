@@ -368,13 +368,29 @@ def test_the_self_check_plans_at_start_and_says_when_it_cannot(
         service.bus.close()
 
 
-def delivered(path: PredictedPath, now: float) -> tuple[MotionPrediction, Delivery]:
+def delivered(path: PredictedPath, now: float, warm: bool = True
+              ) -> tuple[MotionPrediction, Delivery]:
     """``path`` as the predictor's message stamped ``now`` (s), and its delivery."""
     samples = [PredictionSample(t_ns=int(round(t * 1e9)), x=p[0], y=p[1], z=p[2], sigma=s)
                for t, p, s in zip(path.times_s, path.positions, path.sigma, strict=True)]
     msg = MotionPrediction(header=new_header("predictor", 0, int(now * 1e9)), model="test",
-                           period_s=path.period_s, samples=samples, warm=True)
+                           period_s=path.period_s, samples=samples, warm=warm)
     return msg, Delivery("p", b"", "", None, 0, 0)
+
+
+def facing_away(service: PlannerService, arm: ArmModel) -> np.ndarray:
+    """Mount the service's arm facing away (+x) from a can swinging in front of its
+    shoulder; returns T_world_base (4, 4)."""
+    T_world_base = np.eye(4)
+    T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder
+    service.tf.update([("world", arm.base_link, T_world_base)])
+    return T_world_base
+
+
+def see_swing(service: PlannerService, start_s: float, end_s: float) -> None:
+    """The can's centroid observed every 0.1 s from ``start_s`` to before ``end_s``."""
+    for t in np.arange(start_s, end_s, 0.1):
+        service.see(swing(np.array([t]))[0], int(t * 1e9))
 
 
 def test_while_the_predictor_warms_up_the_arm_moves_to_its_standby_and_nothing_is_planned(
@@ -398,20 +414,12 @@ def test_while_the_predictor_warms_up_the_arm_moves_to_its_standby_and_nothing_i
 
     time.sleep(0.5)  # the listener's subscriptions reach the router
     try:
-        T_world_base = np.eye(4)
-        T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
-        service.tf.update([("world", arm.base_link, T_world_base)])
-        for t in np.arange(0.0, 3.0, 0.1):
-            service.see(swing(np.array([t]))[0], int(t * 1e9))
-        cold = delivered(prediction(3.0), 3.0)
-        cold[0].warm = False
-        service.plan(*cold)
+        T_world_base = facing_away(service, arm)
+        see_swing(service, 0.0, 3.0)
+        service.plan(*delivered(prediction(3.0), 3.0, warm=False))
         assert service.counters["standby moves"] == 0  # 3 s seen: not yet all of the swing
-        for t in np.arange(3.0, 5.0, 0.1):
-            service.see(swing(np.array([t]))[0], int(t * 1e9))
-        cold = delivered(prediction(5.0), 5.0)
-        cold[0].warm = False
-        service.plan(*cold)
+        see_swing(service, 3.0, 5.0)
+        service.plan(*delivered(prediction(5.0), 5.0, warm=False))
         assert service.counters["standby moves"] == 1, told(service)
         assert service.counters["plans"] + service.counters["no plan"] == 0, told(service)
         wait_for(moves)
@@ -435,11 +443,8 @@ def test_no_plan_until_the_standby_move_it_asked_for_has_ended(router: Router,
     plans nothing: a plan from the old pose would be approved, then refused by the arm."""
     service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
     try:
-        T_world_base = np.eye(4)
-        T_world_base[:3, 3] = [0.6, 0.0, 0.525] - arm.shoulder  # the mount faces away (+x)
-        service.tf.update([("world", arm.base_link, T_world_base)])
-        for t in np.arange(0.0, 10.0, 0.1):
-            service.see(swing(np.array([t]))[0], int(t * 1e9))
+        facing_away(service, arm)
+        see_swing(service, 0.0, 10.0)
 
         def predict(now: float) -> tuple[MotionPrediction, Delivery]:
             return delivered(prediction(now), now)
