@@ -318,7 +318,6 @@ class PlannerService(Service):
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
 
-
     def rehearse(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                  T_world_base: np.ndarray, result: Plan | Counter) -> None:
         """A forecast of a predictor still warming up is not acted on, but it shows where the
