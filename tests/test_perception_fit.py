@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 
+from wavegrasp.perception.box import FaceOn
 from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_sphere
 from wavegrasp.perception.revolution import fit_revolution
 from wavegrasp.perception.shape import fit_shape
@@ -208,17 +209,14 @@ def test_check_points_names_the_problem() -> None:
         fit_cylinder(good, np.zeros(3), radius=-1.0)
 
 
-def test_a_box_whose_faces_fit_is_not_taken_for_a_free_outline() -> None:
-    """A thin box (6.4 x 4 x 29 cm) seen on two faces, with the noise tails a stereo camera
-    gives: a free outline keeps more of the points as inliers than the faces' tight
-    threshold does, but leaves four times the RMS; the box is the shape (in the random
-    suite such a box was learnt as an outline, its centroid 73 mm off)."""
-    rng = np.random.default_rng(0)
-    size, turn = np.array([0.064, 0.04, 0.29]), np.radians(10.0)
+def box_faces(rng, size, turn_deg, centre, eye, spacing=0.006):
+    """Points on the faces of a box (``size`` along its axes, metres, turned about z) that a
+    camera at ``eye`` sees, image-uniform with ``spacing`` at head-on incidence; no noise.
+    Returns (points, normals), each shape (n, 3)."""
+    turn = np.radians(turn_deg)
     R = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0],
                   [0.0, 0.0, 1.0]])
-    centre, eye = np.array([0.0, 0.0, 0.35]), np.array([0.86, 1.05, 0.92])
-    faces = []
+    points, normals = [], []
     for k in range(3):
         for sign in (-1.0, 1.0):
             n = sign * R[:, k]
@@ -226,12 +224,48 @@ def test_a_box_whose_faces_fit_is_not_taken_for_a_free_outline() -> None:
             if n @ (eye - on) <= 0:
                 continue
             a, b = [j for j in range(3) if j != k]
-            m = int(size[a] * size[b] / 0.006**2 * (n @ (eye - on)) / np.linalg.norm(eye - on))
+            m = int(size[a] * size[b] / spacing**2 * (n @ (eye - on)) / np.linalg.norm(eye - on))
             u = rng.uniform(-0.5, 0.5, (m, 2))
-            tail = rng.random(m) < 0.3
-            noise = np.where(tail, rng.normal(0, 0.003, m), rng.normal(0, 0.0007, m))
-            faces.append(on + u[:, :1] * size[a] * R[:, a] + u[:, 1:] * size[b] * R[:, b]
-                         + noise[:, None] * n)
-    fit = fit_shape(np.vstack(faces), eye)
+            points.append(on + u[:, :1] * size[a] * R[:, a] + u[:, 1:] * size[b] * R[:, b])
+            normals.append(np.tile(n, (m, 1)))
+    return np.vstack(points), np.vstack(normals)
+
+
+def test_a_box_whose_faces_fit_is_not_taken_for_a_free_outline() -> None:
+    """A thin box (6.4 x 4 x 29 cm) seen on two faces, with the noise tails a stereo camera
+    gives: a free outline keeps more of the points as inliers than the faces' tight
+    threshold does, but leaves four times the RMS; the box is the shape (in the random
+    suite such a box was learnt as an outline, its centroid 73 mm off)."""
+    rng = np.random.default_rng(0)
+    centre, eye = np.array([0.0, 0.0, 0.35]), np.array([0.86, 1.05, 0.92])
+    points, normals = box_faces(rng, np.array([0.064, 0.04, 0.29]), 10.0, centre, eye)
+    m = len(points)
+    tail = rng.random(m) < 0.3
+    noise = np.where(tail, rng.normal(0, 0.003, m), rng.normal(0, 0.0007, m))
+    fit = fit_shape(points + noise[:, None] * normals, eye)
     assert fit.shape == "box"
     assert np.linalg.norm(fit.centre - centre) < 0.005
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_box_seen_from_far_and_nearly_level_is_a_box_near_its_centre(seed: int) -> None:
+    """A 9 x 8 x 28 cm box 1.2-1.45 m from a camera 3-15 degrees above it, any turn within 30
+    degrees of face-on: the depth noise there (2-3 mm) is as wide as the faces' RANSAC
+    threshold, and the top face is seen at a grazing angle. Its faces must still explain the
+    cloud (before, a sphere or outline was fitted to half such views, and a box seen so was
+    never observed), or the view is named face-on; the centre is off only by the rows a
+    grazing face's far edge falls short (a fitted normal turned inside out put it 5 cm off)."""
+    rng = np.random.default_rng(seed)
+    size, centre = np.array([0.088, 0.081, 0.28]), np.array([0.0, 0.0, 0.4])
+    el, d = np.radians(rng.uniform(3, 15)), rng.uniform(1.2, 1.45)
+    eye = centre + d * np.array([-np.cos(el), 0.0, np.sin(el)])
+    points, _ = box_faces(rng, size, rng.uniform(-30, 30), centre, eye, spacing=0.0065)
+    ray = points - eye
+    dist = np.linalg.norm(ray, axis=1, keepdims=True)
+    points = points + rng.normal(0, NOISE, (len(points), 1)) * dist * ray
+    try:
+        fit = fit_shape(points, eye)
+    except FaceOn:
+        return
+    assert fit.shape == "box"
+    assert np.linalg.norm(fit.centre - centre) < 0.01

@@ -24,6 +24,7 @@ from wavegrasp.perception.fit import (
     ShapeFit,
     check_points,
     check_vector,
+    noise_threshold,
     segment_plane,
 )
 
@@ -31,6 +32,7 @@ FACE_MIN_POINTS = 12  # a face needs this many points (and 3 % of the object's) 
 SQUARE = 0.25  # |cos| between two faces' normals above this: not two faces of one box
 EDGE_ROWS = 0.5  # see _edge_gap
 FLAT = 0.85  # the fraction of the points on one face that makes a face-on view
+NOISE_SLAB = 0.012  # metres: the residuals the noise is measured on (the edges' other faces out)
 TRIM = 0.005  # the fraction of points left out at each end of an extent (edge noise)
 
 
@@ -39,24 +41,50 @@ class FaceOn(ValueError):
     sphere or cylinder would fit the face (a plane is a cylinder of infinite radius)."""
 
 
+def _plane(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane of ``q`` (shape (n, 3)): its centroid and unit normal."""
+    centre = q.mean(axis=0)
+    return centre, np.linalg.eigh(np.cov((q - centre).T))[1][:, 0]
+
+
 def _faces(p: np.ndarray, viewpoint: np.ndarray) -> list[tuple[np.ndarray, float, np.ndarray]]:
-    """Up to three faces, each (unit normal towards the camera, offset d: n·x = d on the face,
+    """Up to three faces, each (unit normal out of the object, offset d: n·x = d on the face,
     indices of its points)."""
     left, faces = np.arange(len(p)), []
     while len(faces) < 3 and len(left) >= FACE_MIN_POINTS:
         idx = left[segment_plane(p[left], MIN_THRESHOLD)[1]]
         if len(idx) < max(FACE_MIN_POINTS, 0.03 * len(p)):
             break
-        q = p[idx]
-        n = np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))[1][:, 0]
-        keep = np.abs((q - q.mean(axis=0)) @ n) < MIN_THRESHOLD
-        idx, q = idx[keep], q[keep]
-        centre = q.mean(axis=0)
-        n = n if n @ (viewpoint - centre) > 0 else -n
+        centre, n = _plane(p[idx])
+        idx = idx[np.abs((p[idx] - centre) @ n) < MIN_THRESHOLD]
+        centre = p[idx].mean(axis=0)
+        behind = float(n @ (p.mean(axis=0) - centre))
+        if abs(behind) > MIN_THRESHOLD:  # the object lies behind its every face
+            n = n if behind < 0 else -n
+        else:  # a face that holds nearly all the points: the camera is before it
+            # (a face seen at a grazing angle was turned inside out by a 3 degree tilt of
+            # its fitted normal, and the centre put a box's size off)
+            n = n if n @ (viewpoint - centre) > 0 else -n
         left = np.setdiff1d(left, idx)
         if all(abs(n @ f[0]) < SQUARE for f in faces):
             faces.append((n, float(n @ centre), idx))
     return faces
+
+
+def _grown(p: np.ndarray, faces: list) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """The faces, each holding every point nearest its plane within three sigmas of the
+    sensor's noise (measured on the first, largest face). The faces are found within
+    MIN_THRESHOLD, which keeps a small face seen at a grazing angle from being taken into a
+    large one; but a camera's depth noise grows with the square of the distance, and at 1.4 m
+    (about 3 mm) such faces held two thirds of a box's points: too few for a box, and the
+    thinned faces' rows made its edges uncertain (an 8 x 10 x 20 cm box seen face-on was
+    never observed)."""
+    n, d, _ = faces[0]
+    r = p @ n - d
+    thr = noise_threshold(r[np.abs(r) < NOISE_SLAB])
+    dist = np.abs(p @ np.array([f[0] for f in faces]).T - np.array([f[1] for f in faces]))
+    nearest, within = dist.argmin(axis=1), dist.min(axis=1) < thr
+    return [(n, d, np.flatnonzero(within & (nearest == j))) for j, (n, d, _) in enumerate(faces)]
 
 
 def _axes(faces: list, prior: ShapeFit | None, p: np.ndarray) -> np.ndarray:
@@ -124,6 +152,7 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
     faces = _faces(p, vp)
     if not faces:
         raise ValueError("no flat face found")
+    faces = _grown(p, faces)
     E = _axes(faces, prior, p)
     normals = np.array([f[0] for f in faces])
     along = np.abs(normals @ E).argmax(axis=1)  # the axis each face is across
@@ -147,8 +176,11 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
         if k in face_at:  # from the seen face (exact) to the far edge
             pos, sign, _ = face_at[k]
             seen_size[k] = sign * (pos - (lo if sign > 0 else hi)) + gap
-        else:  # both faces hidden: between the two edges
-            seen_size[k], centre_e[k], var[k] = hi - lo + 2 * gap, (lo + hi) / 2, gap**2
+        else:  # both faces hidden: between the two edges, each short by up to a row (2 gap,
+            # uniform): the midpoint's variance is (2 gap)^2 / 12 / 2. Taken as gap^2, a box
+            # 1.2 m from a 256-pixel camera was refused as uncertain by 5 mm in 9 frames in
+            # 10, its error 2 mm.
+            seen_size[k], centre_e[k], var[k] = hi - lo + 2 * gap, (lo + hi) / 2, gap**2 / 6
     size = seen_size if prior is None or prior.size is None else prior.size
     for k in range(3):
         if whole[k] and k not in face_at and seen_size[k] < size[k]:
@@ -161,10 +193,9 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
                 raise FaceOn("a box seen face-on: its depth is hidden")
             raise ValueError("one face of a box, or no box")
         centre_e[k], var[k] = pos - sign * size[k] / 2, v
-    on_face = np.concatenate([f[2] for f in faces])
     centre = E @ centre_e
     inliers = np.zeros(len(p), bool)
-    inliers[on_face] = True
+    inliers[np.concatenate([f[2] for f in faces])] = True
     inliers = inliers[:len(given)]
     long = int(np.argmax(size))
     axis = E[:, long] if E[2, long] >= 0 else -E[:, long]

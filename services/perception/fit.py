@@ -106,7 +106,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _threshold(r: np.ndarray) -> float:
+def noise_threshold(r: np.ndarray) -> float:
+    """Residuals farther than this from the surface are outliers: 3 sigma of ``r`` (metres,
+    the MAD's), at least MIN_THRESHOLD."""
     return max(3.0 * 1.4826 * float(np.median(np.abs(r - np.median(r)))), MIN_THRESHOLD)
 
 
@@ -144,10 +146,10 @@ def _cov(J: np.ndarray, r: np.ndarray) -> np.ndarray:
 def _fit(model: Model, x: np.ndarray, p: np.ndarray, select=lambda x, inl: inl):
     """Robust fit on all points, plain refit on `select(x, inliers)`; return x, r, J, inliers."""
     r = model(x := _solve(model, x, p, True, 1e-4), p)[0]
-    inl = np.abs(r) < _threshold(r)
+    inl = np.abs(r) < noise_threshold(r)
     use = select(x, inl) if inl.sum() >= 2 * len(x) else np.ones(len(p), bool)
     r, J = model(x := _solve(model, x, p[use], False, 1e-7), p)
-    return x, r, J, np.abs(r) < _threshold(r[use])
+    return x, r, J, np.abs(r) < noise_threshold(r[use])
 
 
 def fit_sphere(points: np.ndarray, viewpoint: np.ndarray, radius: float | None = None) -> ShapeFit:
@@ -261,7 +263,7 @@ def fit_cylinder(points: np.ndarray, viewpoint: np.ndarray, radius: float | None
     R = float(x[4]) if radius is None else float(radius)
     a, h, hw = (a, h, hw) if a[2] >= 0 else (-a, -h, -hw[::-1])
     r, rho = r[wall], np.linalg.norm(p - c_line - h[:, None] * a, axis=1)
-    thr, spacing = _threshold(r), (hw[-1] - hw[0]) / len(hw)  # spacing: gap at a wall end
+    thr, spacing = noise_threshold(r), (hw[-1] - hw[0]) / len(hw)  # spacing: gap at a wall end
     view_a = max(abs(_unit(c_line - vp) @ a), 0.3)
     ok, wall_var = inl.copy(), spacing**2 + float(np.mean(r**2)) * view_a**2
     (top, v_top), (bottom, v_bot) = (_end(h, rho, R, thr, sign, end, hw[len(hw) // 2], ok, wall_var)

@@ -289,9 +289,16 @@ def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
                     length=length, rms=rms, inliers=best.inliers, sigma=best.sigma)
 
 
+#: learnt_box: a seen extent is short by up to a row of the face along it, long only by noise.
+SIZE_PERCENTILE = 75
+
+
 def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
-    """A box's sizes: per axis of ``best``'s frame, the median over the fits that saw that
-    extent whole (each fit's axes matched to ``best``'s by direction)."""
+    """A box's sizes: per axis of ``best``'s frame, the upper quartile over the fits that saw
+    that extent whole (each fit's axes matched to ``best``'s by direction). Not the median:
+    the far edge of a face seen at a grazing angle falls up to a row short (26 mm on the top
+    of a box 1.2 m from a 256-pixel camera 15 degrees above it), and the median of a 9 cm
+    depth was learnt 12 mm short, the centroid 6 mm off in every frame after."""
     assert best.frame is not None
     seen: list[list[float]] = [[], [], []]
     for f in fits:
@@ -300,7 +307,8 @@ def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
         for k in range(3):
             if f.whole[match[k]]:
                 seen[k].append(float(f.size[match[k]]))
-    size = np.array([np.median(v) if v else best.size[k] for k, v in enumerate(seen)])
+    size = np.array([np.percentile(v, SIZE_PERCENTILE) if v else best.size[k]
+                     for k, v in enumerate(seen)])
     long = int(np.argmax(size))
     return replace(best, size=size, radius=float(np.hypot(*np.delete(size, long))) / 2,
                    length=float(size[long]))
