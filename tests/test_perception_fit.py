@@ -9,11 +9,12 @@ the viewing ray, ~20 points of a 2 mm tether hanging from the object's bottom, a
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from wavegrasp.perception.box import FaceOn
+from wavegrasp.perception.box import FaceOn, fit_box
 from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_sphere
 from wavegrasp.perception.revolution import fit_revolution
 from wavegrasp.perception.shape import fit_shape
@@ -269,3 +270,24 @@ def test_a_box_seen_from_far_and_nearly_level_is_a_box_near_its_centre(seed: int
         return
     assert fit.shape == "box"
     assert np.linalg.norm(fit.centre - centre) < 0.01
+
+
+def test_a_box_whose_faces_match_the_learnt_axes_wrongly_is_refused_not_reported_off() -> None:
+    """A 6.4 x 4 x 29 cm box whose learnt axes are matched to its faces wrongly (as a turning
+    box's were: its long side taken for its thin one, random-7-002): its centre came out
+    12 cm off with a sigma of 2 mm. A side seen half as long again as learnt is refused,
+    naming it."""
+    size, centre = np.array([0.064, 0.04, 0.29]), np.array([0.0, 0.0, 0.4])
+    eye = centre + np.array([-0.8, -0.5, 0.35])
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        p0, n0 = box_faces(rng, size, 10.0, centre, eye, spacing=0.004)
+        prior = fit_box(p0 + rng.normal(0, 0.0007, (len(p0), 1)) * n0, eye)
+        assert prior.frame is not None and prior.size is not None
+        long, thin = int(np.argmax(prior.size)), int(np.argmin(prior.size))
+        order = np.arange(3)
+        order[[long, thin]] = order[[thin, long]]
+        swapped = replace(prior, frame=prior.frame[:, order] * [1.0, 1.0, -1.0])
+        p1, n1 = box_faces(rng, size, 10.0, centre, eye, spacing=0.004)
+        with pytest.raises(ValueError, match="learnt box"):
+            fit_box(p1 + rng.normal(0, 0.0007, (len(p1), 1)) * n1, eye, swapped)

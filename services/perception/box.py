@@ -33,6 +33,7 @@ SQUARE = 0.25  # |cos| between two faces' normals above this: not two faces of o
 EDGE_ROWS = 0.5  # see _edge_gap
 FLAT = 0.85  # the fraction of the points on one face that makes a face-on view
 NOISE_SLAB = 0.012  # metres: the residuals the noise is measured on (the edges' other faces out)
+LONGER = 0.5  # a seen extent this much longer than the learnt size is another side's
 TRIM = 0.005  # the fraction of points left out at each end of an extent (edge noise)
 
 
@@ -157,6 +158,7 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
     normals = np.array([f[0] for f in faces])
     along = np.abs(normals @ E).argmax(axis=1)  # the axis each face is across
     seen_size, centre_e, var, whole = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3, bool)
+    span = np.zeros(3)  # the points' own extent along each axis, no gaps added
     face_at: dict[int, tuple[float, float, float]] = {}  # axis -> (position, sign, variance)
     rms = np.zeros(len(faces))
     for j, (n, d, idx) in enumerate(faces):
@@ -175,13 +177,23 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
         whole[k] = True
         if k in face_at:  # from the seen face (exact) to the far edge
             pos, sign, _ = face_at[k]
-            seen_size[k] = sign * (pos - (lo if sign > 0 else hi)) + gap
+            span[k] = sign * (pos - (lo if sign > 0 else hi))
+            seen_size[k] = span[k] + gap
         else:  # both faces hidden: between the two edges, each short by up to a row (2 gap,
             # uniform): the midpoint's variance is (2 gap)^2 / 12 / 2. Taken as gap^2, a box
             # 1.2 m from a 256-pixel camera was refused as uncertain by 5 mm in 9 frames in
             # 10, its error 2 mm.
-            seen_size[k], centre_e[k], var[k] = hi - lo + 2 * gap, (lo + hi) / 2, gap**2 / 6
+            span[k] = hi - lo
+            seen_size[k], centre_e[k], var[k] = span[k] + 2 * gap, (lo + hi) / 2, gap**2 / 6
     size = seen_size if prior is None or prior.size is None else prior.size
+    longer = whole & (span > size * (1 + LONGER) + MIN_THRESHOLD)
+    if longer.any():
+        # Its faces were matched to the learnt axes wrongly (a 29 cm side taken for a 4 cm
+        # one as the box turned, its centre put 12 cm off with a sigma of 2 mm). The points'
+        # own extent, not with the rows' gaps added (2 cm at a face seen at 70 degrees).
+        k = int(np.argmax(longer))
+        raise ValueError(f"the faces do not fit the learnt box: {span[k] * 100:.1f} cm "
+                         f"seen along a {size[k] * 100:.1f} cm side")
     for k in range(3):
         if whole[k] and k not in face_at and seen_size[k] < size[k]:
             # Part of both edges' run is hidden (a dropout, the frame's edge): the centre could

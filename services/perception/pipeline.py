@@ -114,6 +114,7 @@ class Perception:
         self.misses = 0
         self.prior: ShapeFit | None = None
         self.axis: np.ndarray | None = None  # the last reported fit's axis, world
+        self.frame: np.ndarray | None = None  # and a box's axes (columns)
         self.learnt: list[ShapeFit] = []
         self.frames = 0
         self.spans: deque[tuple[float, float]] = deque(maxlen=self.cfg.span_frames)
@@ -164,11 +165,17 @@ class Perception:
         return (-hi, -lo) if flip else (lo, hi)
 
     def _start(self) -> ShapeFit | None:
-        """The learnt shape, its axis where the last fit found it: a tethered cylinder tilts
-        40 degrees as it swings, and started from the axis learnt at the first frames its
-        fit slid to a wrong axis (measured: 17 frames 57 mm off, every few seconds)."""
-        if self.prior is None or self.axis is None or self.prior.shape not in (
-                "cylinder", "revolution"):
+        """The learnt shape, its axis (a box: its axes) where the last fit found it: a
+        tethered cylinder tilts 40 degrees as it swings, and started from the axis learnt at
+        the first frames its fit slid to a wrong axis (measured: 17 frames 57 mm off, every
+        few seconds); a box turns as it sways, and its faces matched to the axes learnt at
+        the first frames were taken for other sides (a 4 x 6 x 29 cm box's centre put 12 cm
+        off in one frame in five)."""
+        if self.prior is None or self.axis is None:
+            return self.prior
+        if self.prior.shape == "box" and self.frame is not None:
+            return replace(self.prior, frame=self.frame)
+        if self.prior.shape not in ("cylinder", "revolution"):
             return self.prior
         return replace(self.prior, axis=self.axis)
 
@@ -232,7 +239,8 @@ class Perception:
         else:
             self.velocity = np.zeros(3)
         self.track, self.last_stamp_ns, self.misses = fit.centre, stamp_ns, 0
-        self.axis = fit.axis
+        # A box's axes in the learnt shape's order: those of a fit made with it.
+        self.axis, self.frame = fit.axis, fit.frame if self.prior is not None else None
         if self.prior is None:
             self.learnt.append(fit)
             if len(self.learnt) >= self.cfg.learn_frames:
@@ -291,6 +299,17 @@ def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
 
 #: learnt_box: a seen extent is short by up to a row of the face along it, long only by noise.
 SIZE_PERCENTILE = 75
+#: learnt_box: extents this far from their median (a share of it) are another axis's.
+SIZE_OUTLIER = 0.25
+
+
+def _upper(v: list[float]) -> float:
+    """The upper quartile of extents ``v`` (metres) within SIZE_OUTLIER of their median: a
+    frame whose axes were matched wrongly gives another axis's extent (a 4 cm side seen as
+    29 cm in 4 frames of 17), which the median ignores and an upper quartile would not."""
+    a = np.asarray(v)
+    med = float(np.median(a))
+    return float(np.percentile(a[np.abs(a - med) <= SIZE_OUTLIER * med], SIZE_PERCENTILE))
 
 
 def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
@@ -298,7 +317,7 @@ def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
     that extent whole (each fit's axes matched to ``best``'s by direction). Not the median:
     the far edge of a face seen at a grazing angle falls up to a row short (26 mm on the top
     of a box 1.2 m from a 256-pixel camera 15 degrees above it), and the median of a 9 cm
-    depth was learnt 12 mm short, the centroid 6 mm off in every frame after."""
+    depth was learnt 12 mm short, the centroid 6 mm off in every frame after (:func:`_upper`)."""
     assert best.frame is not None
     seen: list[list[float]] = [[], [], []]
     for f in fits:
@@ -307,8 +326,7 @@ def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
         for k in range(3):
             if f.whole[match[k]]:
                 seen[k].append(float(f.size[match[k]]))
-    size = np.array([np.percentile(v, SIZE_PERCENTILE) if v else best.size[k]
-                     for k, v in enumerate(seen)])
+    size = np.array([_upper(v) if v else best.size[k] for k, v in enumerate(seen)])
     long = int(np.argmax(size))
     return replace(best, size=size, radius=float(np.hypot(*np.delete(size, long))) / 2,
                    length=float(size[long]))
