@@ -88,6 +88,40 @@ def test_plans_at_most_phases_of_the_swing(arm: ArmModel, T_world_base: np.ndarr
     assert sum(planned) >= least, planned
 
 
+def lingering_overhead(arm: ArmModel, T_world_base: np.ndarray, until_s: float
+                       ) -> PredictedPath:
+    """From 10 s: an object drifting 3 cm/s 70 cm above the arm's shoulder (where the tool
+    would have to point up: no orientation reaches it) until ``until_s`` s, its prediction
+    sure to 2 mm; then swaying 6 cm in front of the arm, sure to 6 mm."""
+    t = 10.0 + np.arange(41) * 0.1
+    above = T_world_base[:3, :3] @ arm.shoulder + T_world_base[:3, 3] + [0.0, 0.0, 0.7]
+    w = np.clip((t - until_s) / 0.6, 0.0, 1.0)[:, None]
+    w = w * w * (3.0 - 2.0 * w)
+    drift = np.column_stack([0.03 * (t - 10.0), 0 * t, 0 * t])
+    sway = np.column_stack([0.06 * np.sin(2.5 * t), 0 * t, 0 * t])
+    p = (1.0 - w) * (above + drift) + w * (np.array([0.0, 0.0, 0.525]) + sway)
+    return PredictedPath(t, p, np.where(t < until_s, 0.002, 0.006), 2.5)
+
+
+def test_grasp_times_past_the_slowest_few_are_tried_within_a_bounded_work(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:
+    """The slowest, surest times come first, and there the object may be out of the arm's
+    way (random-7-004: the swing's two ends, 0 of 388 predictions planned when only the 5
+    slowest times were tried; the grasp that planned was the 20th). Every time in the
+    prediction is open now; what bounds the work is the grasp poses checked in full."""
+    cfg, ball = PlannerConfig(), Body(0.04)  # an 8 cm ball
+    path = lingering_overhead(arm, T_world_base, until_s=12.0)  # the 11 slowest up there
+    five = plan_grasp(path, 10.0, arm, T_world_base, arm.q_home, ball,
+                      cfg.model_copy(update={"max_times": 5}))
+    assert isinstance(five, Counter) and five["unreachable"] == 5 * cfg.max_orientations
+    plan = plan_grasp(path, 10.0, arm, T_world_base, arm.q_home, ball, cfg)
+    assert isinstance(plan, Plan) and plan.t_grasp > 12.5, plan
+    assert len(plan.candidates) <= cfg.max_candidates
+    never = lingering_overhead(arm, T_world_base, until_s=20.0)  # up there throughout
+    none = plan_grasp(never, 10.0, arm, T_world_base, arm.q_home, ball, cfg)
+    assert isinstance(none, Counter) and none["unreachable"] == cfg.max_candidates
+
+
 def test_the_last_plans_grasp_is_tried_first_where_the_swing_comes_back_to_it(
         arm: ArmModel, T_world_base: np.ndarray) -> None:
     """A grasp that planned once is tried first at the same phase of the swing and in the

@@ -56,7 +56,10 @@ class PlannerConfig(BaseModel):
     cruise_mps: float = Field(0.4, description="tool speed assumed for the earliest grasp")
     approach_s: float = Field(0.8, description="time assumed for P_init to P_f")
     sample_dt_s: float = 0.02
-    max_times: int = Field(5, description="grasp times tried, each with every orientation")
+    max_times: int = Field(40, description="grasp times tried, each with every orientation")
+    max_candidates: int = Field(80, description="grasp poses checked in full (inverse "
+                                "kinematics, timing, collisions) per prediction at most: it "
+                                "bounds the planner's work per prediction")
     max_orientations: int = Field(8, description="tool orientations tried per grasp time (the "
                                   "paper's family first, then the arm's own)")
     min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
@@ -146,7 +149,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     for t_g in times:
         if t_g < start + need:
             continue
-        if tried == cfg.max_times:
+        if tried == cfg.max_times or len(candidates) == cfg.max_candidates:
             break
         p_f, d = path.at(t_g), motion_direction(path, t_g)
         if np.linalg.norm(p_f - shoulder) > arm.reach_m:  # no orientation reaches it: no IK
@@ -168,7 +171,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             if hand_hits(arm, T_grasp, here):
                 rejected["collision"] += 1
                 continue
-            if tried_here == cfg.max_orientations:
+            if tried_here == cfg.max_orientations or len(candidates) == cfg.max_candidates:
                 break
             tried_here += 1
             tried += tried_here == 1
