@@ -106,8 +106,8 @@ def lingering_overhead(arm: ArmModel, T_world_base: np.ndarray, until_s: float
 def test_grasp_times_past_the_slowest_few_are_tried_within_a_bounded_work(
         arm: ArmModel, T_world_base: np.ndarray) -> None:
     """The slowest, surest times come first, and there the object may be out of the arm's
-    way (random-7-004: the swing's two ends, 0 of 388 predictions planned when only the 5
-    slowest times were tried; the grasp that planned was the 20th). Every time in the
+    way (random-7-004: the 5 slowest were the swing's two ends, one too far for the arm's
+    time, the other unreachable; the grasp that planned was the 20th time). Every time in the
     prediction is open now; what bounds the work is the grasp poses checked in full."""
     cfg, ball = PlannerConfig(), Body(0.04)  # an 8 cm ball
     path = lingering_overhead(arm, T_world_base, until_s=12.0)  # the 11 slowest up there
