@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from wavegrasp.perception.evaluate import evaluate
+from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.main import PerceptionService, PerceptionSettings
+from wavegrasp.perception.pipeline import learnt_box
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.runtime.bus import CDR, Bus, Delivery
@@ -159,3 +161,17 @@ def test_a_fit_far_off_the_points_once_the_shape_is_learnt_is_not_reported() -> 
     assert kept.fit is not None and np.linalg.norm(kept.fit.centre - centre) < 0.01
     assert refused.fit is None and refused.reason.startswith("fit failed: "), refused.reason
     assert "mm off the points, the learnt shape 1.2 mm" in refused.reason
+
+
+def test_a_boxs_sizes_are_learnt_from_two_fits_that_disagree() -> None:
+    """Two fits whose extents along one axis are far apart (one matched to another side):
+    neither lies within a quarter of their median, and the size is still learnt, one of them."""
+    def box(size: list[float]) -> ShapeFit:
+        return ShapeFit("box", np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.05, max(size), 0.001,
+                        np.ones(10, bool), 0.002, frame=np.eye(3), size=np.array(size),
+                        whole=np.ones(3, bool))
+    fits = [box([0.06, 0.04, 0.29]), box([0.06, 0.29, 0.29])]
+    size = learnt_box(fits, fits[0]).size
+    assert size is not None
+    np.testing.assert_allclose(size[[0, 2]], [0.06, 0.29])
+    assert size[1] in (0.04, 0.29)

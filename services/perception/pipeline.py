@@ -308,8 +308,10 @@ def _upper(v: list[float]) -> float:
     frame whose axes were matched wrongly gives another axis's extent (a 4 cm side seen as
     29 cm in 4 frames of 17), which the median ignores and an upper quartile would not."""
     a = np.asarray(v)
-    med = float(np.median(a))
-    return float(np.percentile(a[np.abs(a - med) <= SIZE_OUTLIER * med], SIZE_PERCENTILE))
+    off = np.abs(a - float(np.median(a)))
+    # Of an even count the median may lie between two far apart: then those nearest it.
+    near = off <= max(SIZE_OUTLIER * float(np.median(a)), off.min())
+    return float(np.percentile(a[near], SIZE_PERCENTILE))
 
 
 def learnt_box(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
