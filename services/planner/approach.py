@@ -214,13 +214,17 @@ def offsets(n: np.ndarray, move: np.ndarray, count: int) -> list[np.ndarray]:
 
 def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15,
               count: int = 4, beta: float = 0.03, final_m: float = 0.06,
-              move: np.ndarray | None = None) -> np.ndarray:
+              move: np.ndarray | None = None, final_step_m: float | None = None
+              ) -> np.ndarray:
     """P_init, the intermediate P_i (equation 9, β_i bowing outwards along n, largest midway)
     and the pre-grasp point ``final_m`` back from P_f along the final ``move`` (unit; by
-    default −d, against the object's motion ``d``), then P_f.
+    default −d, against the object's motion ``d``), points evenly between it and P_f at
+    most ``final_step_m`` apart (none if None), then P_f.
 
-    Returns array, shape (count + 2, 3): the last move, pre-grasp → P_f, is along ``move``.
+    Returns array, shape (count + 2 + m, 3), m the points between: the moves from the
+    pre-grasp point on, the last m + 1, are along ``move``.
     """
+    final_count = 0 if final_step_m is None else final_points(final_m, final_step_m)
     move = -d if move is None else move
     p_init = p_f + alpha * n
     pre = p_f - final_m * move
@@ -228,5 +232,11 @@ def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15
     for i in range(1, count):
         s = i / count
         points.append(p_init + s * (pre - p_init) + beta * np.sin(np.pi * s) * n)
-    points += [pre, p_f]
+    points += [pre + s * (p_f - pre) for s in np.arange(final_count + 1) / (final_count + 1)]
+    points.append(p_f)
     return np.array(points)
+
+
+def final_points(final_m: float, final_step_m: float) -> int:
+    """How many points :func:`waypoints` puts between the pre-grasp point and P_f."""
+    return max(int(np.ceil(final_m / final_step_m - 1e-9)) - 1, 0)

@@ -21,6 +21,7 @@ from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import (
     PredictedPath,
     final_move,
+    final_points,
     grasp_orientations,
     grasp_times,
     motion_direction,
@@ -47,6 +48,10 @@ class PlannerConfig(BaseModel):
     alpha_m: float = Field(0.08, description="P_init's distance from the object's surface")
     waypoint_count: int = 3
     beta_m: float = 0.02
+    final_step_m: float = Field(0.02, description="the final move's waypoints are at most "
+                                "this apart: through its two ends alone, the approach's joint "
+                                "spline bowed the tool 2 cm off it, across the jaw, while the "
+                                "fingers were astride the object")
     final_m: float = Field(0.05, description="the final move's least length; longer where the "
                            "open fingers would otherwise start it astride the object")
     jaw_margin_m: float = Field(0.01, description="the jaw's preshape: this wider than the "
@@ -298,7 +303,8 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     solved: dict[bytes, np.ndarray | None] = {}  # the points every n shares, solved once
     for n in offsets(n_paper, move, cfg.offset_tries):
         alpha = cfg.alpha_m + here.extent(n) + (jaw_lead(arm, R.T @ -n) if clear else 0.0)
-        points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, final_m, move)
+        points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, final_m, move,
+                           cfg.final_step_m)
         qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
         if qs is not None:
@@ -324,7 +330,7 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     times = np.concatenate([t_pre, t_hold, t_app])
     q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
     qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
-    final_from = t_g - d_path + approach.spline.x[-2]
+    final_from = t_g - d_path + approach.spline.x[-2 - final_points(final_m, cfg.final_step_m)]
     if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
