@@ -224,7 +224,7 @@ def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15
     Returns array, shape (count + 2 + m, 3), m the points between: the moves from the
     pre-grasp point on, the last m + 1, are along ``move``.
     """
-    final_count = 0 if final_step_m is None else final_points(final_m, final_step_m)
+    final_count = final_points(final_m, final_step_m)
     move = -d if move is None else move
     p_init = p_f + alpha * n
     pre = p_f - final_m * move
@@ -237,6 +237,8 @@ def waypoints(p_f: np.ndarray, n: np.ndarray, d: np.ndarray, alpha: float = 0.15
     return np.array(points)
 
 
-def final_points(final_m: float, final_step_m: float) -> int:
+def final_points(final_m: float, final_step_m: float | None) -> int:
     """How many points :func:`waypoints` puts between the pre-grasp point and P_f."""
+    if final_step_m is None:
+        return 0
     return max(int(np.ceil(final_m / final_step_m - 1e-9)) - 1, 0)

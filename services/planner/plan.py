@@ -338,8 +338,7 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     times = np.concatenate([t_pre, t_hold, t_app])
     q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
     qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
-    between = 0 if final_step_m is None else final_points(final_m, final_step_m)
-    final_from = t_g - d_path + approach.spline.x[-2 - between]
+    final_from = t_g - d_path + approach.spline.x[-2 - final_points(final_m, final_step_m)]
     if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
