@@ -39,7 +39,18 @@ TRIM = 0.005  # the fraction of points left out at each end of an extent (edge n
 
 class FaceOn(ValueError):
     """One flat face holds nearly all the points: the depth behind it cannot be seen, and a
-    sphere or cylinder would fit the face (a plane is a cylinder of infinite radius)."""
+    sphere or cylinder would fit the face (a plane is a cylinder of infinite radius).
+    ``normal`` (shape (3,)) and ``offset`` (metres) are the face's plane: normal·x = offset."""
+
+    def __init__(self, message: str, normal: np.ndarray, offset: float) -> None:
+        super().__init__(message)
+        self.normal, self.offset = normal, offset
+
+    def rms(self, points: np.ndarray) -> float:
+        """The face's plane's RMS off ``points`` (shape (n, 3), metres) within three sigmas
+        of their residuals, as a shape fit's RMS is over its inliers."""
+        r = points @ self.normal - self.offset
+        return float(np.sqrt(np.mean(r[np.abs(r) < noise_threshold(r)] ** 2)))
 
 
 def _plane(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +214,7 @@ def fit_box(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None = 
     for k, (pos, sign, v) in face_at.items():
         if prior is None and not whole[k]:
             if len(faces[0][2]) >= FLAT * len(p):
-                raise FaceOn("a box seen face-on: its depth is hidden")
+                raise FaceOn("a box seen face-on: its depth is hidden", *faces[0][:2])
             raise ValueError("one face of a box, or no box")
         centre_e[k], var[k] = pos - sign * size[k] / 2, v
     centre = E @ centre_e
