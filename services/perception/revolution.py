@@ -51,31 +51,56 @@ def normals(p: np.ndarray) -> np.ndarray:
     return np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))[1][:, :, 0]
 
 
-def _slices(p: np.ndarray, c: np.ndarray, a: np.ndarray, n: np.ndarray):
-    """Heights, distances, slice index per point, each slice's mean distance over its wall
-    points and their count, and each point's height above its end's plane (NaN for the
-    wall's). ``n``: the points' normals.
+def end_faces(p: np.ndarray, n: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Which points lie on a flat end of the object about the axis through ``c`` along the
+    unit ``a``: 1 the upper end's, 2 the lower's, 0 the wall's. p, n : arrays, shape (n, 3),
+    the points and their normals.
 
     A flat end (a bottle's base) lies across the axis, its points at every distance from it:
     counted in its slice's mean, a bottle's 268 base points pulled the axis 25 mm away from
     the camera and its radius from 54 to 80 mm (the axis farther off spreads their distances
     less). Points whose normal lies within END_FACE_COS of the axis, at the upper or lower
-    end, are that end's if they lie within FLAT_M of one plane across the axis (their mean
-    height): a flat ellipsoid's or a sphere's cap is no plane, and its points are the wall's
-    (taken for an end, a 12 x 8 cm ellipsoid's centroid came out 4 mm off)."""
+    end, are that end's if they bulge by no more than FLAT_M: a flat
+    ellipsoid's or a sphere's cap is no plane (taken for an end, a 12 x 8 cm ellipsoid's
+    centroid came out 4 mm off). Decided once, about an axis fitted without ends: decided
+    anew for every axis tried, a tilted axis made a 10 cm cylinder's near wall an end, its
+    outline 12 mm long."""
+    h = (p - c) @ a
+    end = np.zeros(len(p), int)
+    across = np.abs(n @ a) >= END_FACE_COS
+    upper = h > h.mean()
+    for label, on in ((1, across & upper), (2, across & ~upper)):
+        if on.sum() >= 10 and _sag(p[on] - c, a) <= FLAT_M:
+            end[on] = label
+    return end
+
+
+def _sag(d: np.ndarray, a: np.ndarray) -> float:
+    """How far a patch of points ``d`` (shape (n, 3), metres) facing along the unit ``a``
+    bulges over its width, metres: h = c0 + c1 x + c2 y + c3 (x² + y²) fitted across ``a``
+    (the linear terms take up a tilted or offset axis), and |c3| times its half-width
+    squared."""
+    e1, e2 = _frame(a)
+    x, y = d @ e1, d @ e2
+    A = np.column_stack([np.ones(len(d)), x, y, x * x + y * y])
+    c3 = np.linalg.lstsq(A, d @ a, rcond=None)[0][3]
+    return float(abs(c3) * (max(np.ptp(x), np.ptp(y)) / 2) ** 2)
+
+
+def _slices(p: np.ndarray, c: np.ndarray, a: np.ndarray, end: np.ndarray):
+    """Heights, distances, slice index per point, each slice's mean distance over its wall
+    points and their count, and each end point's height above its end's plane (its points'
+    mean; NaN for the wall's). ``end``: :func:`end_faces`."""
     d = p - c
     h = d @ a
     rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
     k = np.floor((h - h.min()) / SLICE_M).astype(int)
     ends = np.full(len(h), np.nan)
-    across = np.abs(n @ a) >= END_FACE_COS
-    upper = h > h.mean()
-    for end in (across & upper, across & ~upper):
-        if end.any():
-            off = h[end] - h[end].mean()
-            if np.sqrt(np.mean(off**2)) <= FLAT_M:
-                ends[end] = off
-    wall = np.isnan(ends)
+    for label in (1, 2):
+        on = end == label
+        if on.any():
+            ends[on] = h[on] - h[on].mean()
+    wall = end == 0
     count = np.bincount(k, weights=wall.astype(float)).astype(int)
     med = np.bincount(k, weights=rho * wall) / np.maximum(count, 1)
     return h, rho, k, med, count, ends
@@ -88,9 +113,8 @@ def _off_outline(h: np.ndarray, rho: np.ndarray, k: np.ndarray, med: np.ndarray,
     along the radius overstates it, and a slice 4 mm thick spans millimetres of radius: an
     oblate ellipsoid's true axis then left more residual than a wrong one (measured 1.39
     against 1.31 mm), and was not chosen. Zero for points of slices too sparse to say. An
-    end's points are measured from the end's plane (``ends``, :func:`_slices`): left
-    unmeasured, an axis towards the camera made a sphere's near side an end, and its
-    outline won, 21 mm off."""
+    end's points are measured from the end's plane (``ends``, :func:`_slices`), so a flat
+    base is as near its points as a wall is."""
     ok, wall = count >= MIN_SLICE_POINTS, np.isnan(ends)
     if ok.sum() < 2:
         return np.where(wall, np.where(ok[k], rho - med[k], 0.0), ends)
@@ -106,23 +130,23 @@ def _off_outline(h: np.ndarray, rho: np.ndarray, k: np.ndarray, med: np.ndarray,
     return np.where(wall, np.where(ok[k], r, 0.0), ends)
 
 
-def _residual(x, p, n, base, a0, e1, e2) -> np.ndarray:
+def _residual(x, p, end, base, a0, e1, e2) -> np.ndarray:
     c, a = _line(x, base, a0, e1, e2)
-    return _off_outline(*_slices(p, c, a, n))
+    return _off_outline(*_slices(p, c, a, end))
 
 
-def _fit_line(p: np.ndarray, n: np.ndarray, base: np.ndarray, a0: np.ndarray
+def _fit_line(p: np.ndarray, end: np.ndarray, base: np.ndarray, a0: np.ndarray
               ) -> tuple[np.ndarray, float]:
     e1, e2 = _frame(a0)
     x, eps = np.zeros(4), np.array([1e-4, 1e-4, 1e-3, 1e-3])
-    r = _residual(x, p, n, base, a0, e1, e2)
+    r = _residual(x, p, end, base, a0, e1, e2)
     for _ in range(15):
-        J = np.column_stack([(_residual(x + e, p, n, base, a0, e1, e2) - r) / e[i]
+        J = np.column_stack([(_residual(x + e, p, end, base, a0, e1, e2) - r) / e[i]
                              for i, e in enumerate(np.diag(eps))])
         step = -np.linalg.lstsq(J, r, rcond=None)[0]
         t = 1.0
         while t > 0.05:
-            rt = _residual(x + t * step, p, n, base, a0, e1, e2)
+            rt = _residual(x + t * step, p, end, base, a0, e1, e2)
             if rt @ rt <= r @ r:
                 break
             t /= 2
@@ -134,9 +158,9 @@ def _fit_line(p: np.ndarray, n: np.ndarray, base: np.ndarray, a0: np.ndarray
     return x, float(np.sqrt(np.mean(r**2)))
 
 
-def _inliers(p: np.ndarray, n: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.ndarray:
+def _inliers(p: np.ndarray, end: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.ndarray:
     """The points within 3 standard deviations (at least MIN_THRESHOLD) of the outline."""
-    h, rho, k, med, count, ends = _slices(p, c, a, n)
+    h, rho, k, med, count, ends = _slices(p, c, a, end)
     r = _off_outline(h, rho, k, med, count, ends)
     return (np.abs(r) < max(3 * float(np.std(r)), MIN_THRESHOLD)) & _main_run(count)[k]
 
@@ -165,7 +189,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     ``offset`` how far along the axis the middle of that extent lies from the volume centre.
     """
     p, vp = check_points(points), check_vector("viewpoint", viewpoint)
-    n = normals(p)
+    wall = np.zeros(len(p), int)
     m = np.median(p, axis=0)
     d = p - p.mean(axis=0)
     # Starts: the points' principal directions, and up (a tethered object hangs near it).
@@ -177,16 +201,19 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
         v_perp = _unit((m - vp) - ((m - vp) @ a0) * a0)
         across = np.ptp(d @ np.cross(a0, v_perp)) / 2
         base = m + 0.75 * across * v_perp
-        x, rms = _fit_line(p, n, base, a0)
+        x, rms = _fit_line(p, wall, base, a0)
         if best is None or rms < best[0]:
             best = (rms, x, base, a0)
     assert best is not None
     _, x, base, a0 = best
     c, a = _line(x, base, a0, *_frame(a0))
-    inliers = _inliers(p, n, c, a)  # refit without strays (a tether's points, snow)
-    c, a = _line(*_fit_line(p[inliers], n[inliers], c, a)[:1], c, a, *_frame(a))
-    inliers = _inliers(p, n, c, a)
-    h, rho, k, med, count, ends = _slices(p[inliers], c, a, n[inliers])
+    end = end_faces(p, normals(p), c, a)
+    if end.any():
+        c, a = _line(_fit_line(p, end, c, a)[0], c, a, *_frame(a))
+    inliers = _inliers(p, end, c, a)  # refit without strays (a tether's points, snow)
+    c, a = _line(*_fit_line(p[inliers], end[inliers], c, a)[:1], c, a, *_frame(a))
+    inliers = _inliers(p, end, c, a)
+    h, rho, k, med, count, ends = _slices(p[inliers], c, a, end[inliers])
     r = _off_outline(h, rho, k, med, count, ends)
     used = np.flatnonzero(count >= MIN_SLICE_POINTS)
     if len(used) < 3:
