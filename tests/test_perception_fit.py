@@ -16,7 +16,7 @@ import pytest
 
 from wavegrasp.perception.box import FaceOn, fit_box
 from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_sphere
-from wavegrasp.perception.revolution import fit_revolution
+from wavegrasp.perception.revolution import end_faces, fit_revolution, normals
 from wavegrasp.perception.shape import fit_shape
 
 NOISE = 0.0015  # metres, depth noise at 1 m, along the ray
@@ -291,3 +291,22 @@ def test_a_box_whose_faces_match_the_learnt_axes_wrongly_is_refused_not_reported
         p1, n1 = box_faces(rng, size, 10.0, centre, eye, spacing=0.004)
         with pytest.raises(ValueError, match="learnt box"):
             fit_box(p1 + rng.normal(0, 0.0007, (len(p1), 1)) * n1, eye, swapped)
+
+
+def test_a_flat_end_is_told_from_a_curved_cap() -> None:
+    """A revolution's end is a face only if it is flat: a 10 cm cylinder's top (its normals
+    along the axis, within the sensor's noise of one plane) is, a sphere's or a flat
+    ellipsoid's cap (its normals as near the axis, but bulging 3-8 mm) is not."""
+    rng = np.random.default_rng(0)
+    axis, centre = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    th, r = rng.uniform(0, 2 * np.pi, 1500), 0.05 * np.sqrt(rng.uniform(size=1500))
+    top = np.column_stack([r * np.cos(th), r * np.sin(th), np.full(1500, 0.06)])
+    wall = np.column_stack([0.05 * np.cos(th), 0.05 * np.sin(th), rng.uniform(-0.06, 0.06,
+                                                                               1500)])
+    cylinder = np.vstack([top, wall]) + rng.normal(0, 0.0005, (3000, 3))
+    end = end_faces(cylinder, normals(cylinder), centre, axis)
+    assert (end[:1500] == 1).mean() > 0.8 and (end[1500:] == 0).mean() > 0.95
+    for half_axes in ([0.035, 0.035, 0.035], [0.06, 0.06, 0.04]):
+        u = _unit(rng.normal(size=(3000, 3)))
+        cap = u[u[:, 2] > 0] * half_axes + rng.normal(0, 0.0005, ((u[:, 2] > 0).sum(), 3))
+        assert not end_faces(cap, normals(cap), centre, axis).any()
