@@ -10,7 +10,7 @@ import pytest
 from wavegrasp.perception.evaluate import evaluate
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.main import PerceptionService, PerceptionSettings
-from wavegrasp.perception.pipeline import learnt_box
+from wavegrasp.perception.pipeline import joined, learnt_box
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.runtime.bus import CDR, Bus, Delivery
@@ -175,3 +175,19 @@ def test_a_boxs_sizes_are_learnt_from_two_fits_that_disagree() -> None:
     assert size is not None
     np.testing.assert_allclose(size[[0, 2]], [0.06, 0.29])
     assert size[1] in (0.04, 0.29)
+
+
+def test_a_part_near_the_object_is_joined_and_a_line_is_not() -> None:
+    """A bottle's neck seen apart from its body (its shoulder hidden) is part of the object;
+    what is left of the tether near it, a line, is not (joined, it stretched a bottle's
+    outline by 4-9 cm)."""
+    rng = np.random.default_rng(0)
+    def wall(radius: float, z0: float, z1: float, n: int) -> np.ndarray:
+        th, z = rng.uniform(-1.5, 1.5, n), rng.uniform(z0, z1, n)
+        return np.column_stack([radius * np.cos(th), radius * np.sin(th), z])
+    body, neck = wall(0.054, 0.0, 0.05, 400), wall(0.024, -0.065, -0.03, 30)
+    line = np.column_stack([0.05 + rng.normal(0, 0.0015, (20, 2)) * [1, 0.2],
+                            rng.uniform(-0.04, -0.005, 20)])
+    whole = joined(body, [body, neck, line], 0.05, 0.004)
+    assert len(whole) == len(body) + len(neck)
+    assert len(joined(body, [body, neck], 0.02, 0.004)) == len(body)  # farther than the gap

@@ -30,7 +30,8 @@ SLICE_M = 0.004  # slice thickness along the axis, metres
 MIN_SLICE_POINTS = 3  # a slice with fewer points has no radius of its own
 END_FACE_COS = 0.9  # a surface whose normal is this near the axis faces along it: an end
 NORMAL_NEIGHBOURS = 10  # points a surface normal is estimated from
-FLAT_M = 0.0015  # an end's points within this RMS of one plane across the axis are a face
+FLAT_M = 0.0015  # an end bulging no more than this over its width is a face
+FACE_MIN_POINTS, FACE_MIN_SHARE = 20, 0.1  # a face holds this many and this share of points
 MAX_GAP_M = 0.05  # slices farther apart along the axis than this are not one object's
 
 
@@ -60,9 +61,11 @@ def end_faces(p: np.ndarray, n: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.
     counted in its slice's mean, a bottle's 268 base points pulled the axis 25 mm away from
     the camera and its radius from 54 to 80 mm (the axis farther off spreads their distances
     less). Points whose normal lies within END_FACE_COS of the axis, at the upper or lower
-    end, are that end's if they bulge by no more than FLAT_M: a flat
-    ellipsoid's or a sphere's cap is no plane (taken for an end, a 12 x 8 cm ellipsoid's
-    centroid came out 4 mm off). Decided once, about an axis fitted without ends: decided
+    end, are that end's if they bulge by no more than FLAT_M: a flat ellipsoid's or a
+    sphere's cap is no plane (taken for an end, a 12 x 8 cm ellipsoid's centroid came out
+    4 mm off). And only if they are enough to tell: a dozen points of a 13 cm ellipsoid's
+    pole bulged 0-5 mm, and taken for a face in one frame in three they put its centroid
+    2.7 mm low. Decided once, about an axis fitted without ends: decided
     anew for every axis tried, a tilted axis made a 10 cm cylinder's near wall an end, its
     outline 12 mm long."""
     h = (p - c) @ a
@@ -70,7 +73,8 @@ def end_faces(p: np.ndarray, n: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.
     across = np.abs(n @ a) >= END_FACE_COS
     upper = h > h.mean()
     for label, on in ((1, across & upper), (2, across & ~upper)):
-        if on.sum() >= 10 and _sag(p[on] - c, a) <= FLAT_M:
+        if on.sum() >= max(FACE_MIN_POINTS, FACE_MIN_SHARE * len(p)) and _sag(
+                p[on] - c, a) <= FLAT_M:
             end[on] = label
     return end
 
