@@ -9,7 +9,8 @@ the slices' mean distances, and the volume centre lies on the axis at the centro
 solid that outline sweeps (frusta summed), so a neck or a tapering end moves it as it moves
 the object's mass.
 A sphere or cylinder fit of such objects is off by 7-73 mm (measured); its faceless sides and
-ends are seen as they are, so no part of the outline is assumed.
+ends are seen as they are, so no part of the outline is assumed. A flat end (a bottle's base)
+is no part of the wall: its points are measured from its plane (:func:`end_faces`).
 """
 
 from __future__ import annotations
@@ -65,9 +66,8 @@ def end_faces(p: np.ndarray, n: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.
     sphere's cap is no plane (taken for an end, a 12 x 8 cm ellipsoid's centroid came out
     4 mm off). And only if they are enough to tell: a dozen points of a 13 cm ellipsoid's
     pole bulged 0-5 mm, and taken for a face in one frame in three they put its centroid
-    2.7 mm low. Decided once, about an axis fitted without ends: decided
-    anew for every axis tried, a tilted axis made a 10 cm cylinder's near wall an end, its
-    outline 12 mm long."""
+    2.7 mm low. Decided once, about an axis fitted without ends: decided anew for every axis
+    tried, a tilted axis made a 10 cm cylinder's near wall an end, its outline 12 mm long."""
     h = (p - c) @ a
     end = np.zeros(len(p), int)
     across = np.abs(n @ a) >= END_FACE_COS
