@@ -255,8 +255,8 @@ class Perception:
         big = [c for c in found if len(c) >= cfg.min_object_points]
         if not big:
             return "object not found near its track"
-        c = min(big, key=lambda c: np.linalg.norm(c.mean(axis=0) - predicted))
-        return joined(c, found, cfg.join_m, cfg.join_min_width_m), world
+        nearest = min(big, key=lambda q: np.linalg.norm(q.mean(axis=0) - predicted))
+        return joined(nearest, found, cfg.join_m, cfg.join_min_width_m), world
 
     def _above_seabed(self, world: np.ndarray) -> np.ndarray:
         if self.seabed is None or not len(world):

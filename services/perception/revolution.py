@@ -193,7 +193,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     ``offset`` how far along the axis the middle of that extent lies from the volume centre.
     """
     p, vp = check_points(points), check_vector("viewpoint", viewpoint)
-    wall = np.zeros(len(p), int)
+    no_ends = np.zeros(len(p), int)  # every point the wall's: the axis before faces
     m = np.median(p, axis=0)
     d = p - p.mean(axis=0)
     # Starts: the points' principal directions, and up (a tethered object hangs near it).
@@ -205,7 +205,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
         v_perp = _unit((m - vp) - ((m - vp) @ a0) * a0)
         across = np.ptp(d @ np.cross(a0, v_perp)) / 2
         base = m + 0.75 * across * v_perp
-        x, rms = _fit_line(p, wall, base, a0)
+        x, rms = _fit_line(p, no_ends, base, a0)
         if best is None or rms < best[0]:
             best = (rms, x, base, a0)
     assert best is not None
