@@ -191,3 +191,22 @@ def test_a_part_near_the_object_is_joined_and_a_line_is_not() -> None:
     whole = joined(body, [body, neck, line], 0.05, 0.004)
     assert len(whole) == len(body) + len(neck)
     assert len(joined(body, [body, neck], 0.02, 0.004)) == len(body)  # farther than the gap
+
+
+def test_an_object_swaying_back_while_unseen_is_found_again() -> None:
+    """Frames 0.8 s apart (a 5 Hz camera that missed three): the object has swung back, 25
+    cm from where its track's straight line goes; it is searched for as far as its top
+    speed of late could have taken it, and found."""
+    from wavegrasp.perception.pipeline import Perception, PerceptionConfig
+
+    rng = np.random.default_rng(2)
+    perception = Perception(PerceptionConfig(max_sigma_m=0.05))  # a cap-less wall (above)
+    perception.prior = ShapeFit("cylinder", np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.033,
+                                0.122, 0.0012, np.ones(1, bool), 0.0)
+    def at(t: float) -> np.ndarray:  # a 15 cm sway of 1.9 s, 0.8 m in front of the camera
+        return np.array([0.15 * np.sin(2 * np.pi * t / 1.9), 0.8, 0.0])
+    for t in (0.0, 0.2, 0.4, 1.2):
+        result = perception.process(_upright_cylinder_cloud(rng, at(t), 0.001), np.eye(4),
+                                    int(1e9 + t * 1e9))
+        assert result.fit is not None, (t, result.reason)
+    assert np.linalg.norm(result.fit.centre - at(1.2)) < 0.01
