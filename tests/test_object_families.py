@@ -220,10 +220,10 @@ def perceived_bottle(tmp_path: Path, seed: int, sea: tuple[float, float, float],
 
 def recorded_and_perceived(tmp_path: Path, seed: int, sea: tuple[float, float, float] | dict,
                            obj: dict, mount: dict, camera: dict, seconds: float = 4.0,
-                           rmse_m: float = 0.003, observed: float = 0.9) -> Path:
+                           rmse_m: float = 0.003) -> Path:
     """Record ``seconds`` of an object (a scenario's ``object``) in a sea (height, period,
-    depth, or a scenario's ``sea``) and assert perception observes it in at least the share
-    ``observed`` of frames within ``rmse_m`` of its volume centroid; return the recording."""
+    depth, or a scenario's ``sea``) and assert perception observes it in most frames within
+    ``rmse_m`` of its volume centroid; return the recording."""
     scenario = Scenario.model_validate({
         "name": f"{obj['family']}-{seed}", "seconds": seconds, "seed": seed,
         "sea": sea if isinstance(sea, dict) else dict(
@@ -231,7 +231,7 @@ def recorded_and_perceived(tmp_path: Path, seed: int, sea: tuple[float, float, f
         "object": obj, "mount": mount, "camera": camera})
     generate(scenario, path := tmp_path / "object.mcap")
     ev = evaluate(path)
-    assert ev.observed >= observed, ev.row()
+    assert ev.observed >= 0.9, ev.row()
     assert ev.rmse <= rmse_m, ev.row()
     return path
 
@@ -282,22 +282,3 @@ def test_a_flat_ellipsoid_seen_from_the_side_is_fitted_upright(tmp_path: Path) -
         {"position": [0.2384, -0.4346, 0.3395], "yaw_offset_deg": -150.65},
         {"eye": [1.1421, 0.619, 0.8408], "target": [0.0, 0.0, 0.565], "rate_hz": 5.0},
         seconds=10.0, rmse_m=0.005)
-
-
-def test_a_flat_ellipsoid_tilting_on_its_tether_is_fitted_about_its_new_axis(
-        tmp_path: Path) -> None:
-    """An 11 x 7.3 cm ellipsoid tilting up to 50° as it sways (random-61-010): fitted from
-    the axis of the frames before, its outline came out 7-9 cm long, not 6.4, and the frame
-    was refused as a partial view, 42 % of frames in these 12 s. Now other axes are tried
-    until one gives the length learnt: 25 % refused. Still 6.3 mm off (RMSE), 1.8 mm of it
-    along the axis: the caps it is seen past are not measured, an open problem."""
-    recorded_and_perceived(
-        tmp_path, 61010,
-        {"height_m": 0.234, "period_s": 1.622, "depth_m": 0.817, "current_mps": 0.009,
-         "current_deg": -147.2},
-        {"family": "ellipsoid", "diameter_m": 0.1114, "length_m": 0.0731, "mass_kg": 0.3081,
-         "rest_height_m": 0.304, "drag_coefficient": 0.5, "added_mass_coefficient": 0.5},
-        {"position": [-0.2501, 0.578, 0.1319], "yaw_offset_deg": -88.99},
-        {"eye": [0.2688, -1.0187, 0.6548], "target": [0.0, 0.0, 0.304], "width": 400,
-         "height": 300, "rate_hz": 5.0},
-        seconds=12.0, rmse_m=0.007, observed=0.7)

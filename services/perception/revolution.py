@@ -198,37 +198,12 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     ``offset`` how far along the axis the middle of that extent lies from the volume centre.
     """
     p, vp = check_points(points), check_vector("viewpoint", viewpoint)
+    no_ends = np.zeros(len(p), int)  # every point the wall's: the axis before faces
+    m = np.median(p, axis=0)
     d = p - p.mean(axis=0)
     # Starts: the points' principal directions, and up (a tethered object hangs near it).
-    free = [*np.linalg.eigh(d.T @ d)[1].T, np.array([0.0, 0.0, 1.0])]
-    if prior is None:
-        return _fit_from(p, vp, free, None)
-    # It may have turned since its axis was last fitted: a flat ellipsoid tilting 40° on its
-    # tether, fitted from the axis of frames before, came out 7-9 cm long, not 6.4, and was
-    # refused in one frame in two (random-61-010). Then each other start is tried until one
-    # gives the length learnt (the best of them alone was as often its wrong lying axis).
-    # Not after a fit far off the points, a view of part of it: taking another axis's fit of
-    # such views put a 12 x 21 cm ellipsoid's centroid 8.9 mm off (RMSE), not 6.8.
-    first: OtherLength | None = None
-    for a0 in [prior.axis, *free[::-1]]:
-        try:
-            return _fit_from(p, vp, [a0], prior)
-        except OtherLength as exc:
-            first = first or exc
-    assert first is not None
-    raise first
-
-
-class OtherLength(ValueError):
-    """The outline is not as long as the one learnt: fitted about another axis, or a part of
-    the object seen."""
-
-
-def _fit_from(p: np.ndarray, vp: np.ndarray, axes: list[np.ndarray],
-              prior: ShapeFit | None) -> ShapeFit:
-    """:func:`fit_revolution` from the best of the start ``axes`` (unit, shape (3,))."""
-    no_ends = np.zeros(len(p), int)  # every point the wall's: the axis before faces
-    m, d = np.median(p, axis=0), p - p.mean(axis=0)
+    axes = [prior.axis] if prior is not None else [*np.linalg.eigh(d.T @ d)[1].T,
+                                                    np.array([0.0, 0.0, 1.0])]
     best = None
     for a0 in axes:
         a0 = _unit(np.asarray(a0, dtype=float))
@@ -265,7 +240,7 @@ def _fit_from(p: np.ndarray, vp: np.ndarray, axes: list[np.ndarray],
     rms = float(np.sqrt(np.mean(r**2)))
     if prior is not None and abs(z[-1] - z[0] - prior.length) > max(SLICE_M * 2,
                                                                     0.1 * prior.length):
-        raise OtherLength(f"the outline is {(z[-1] - z[0]) * 100:.1f} cm long, the one learnt "
+        raise ValueError(f"the outline is {(z[-1] - z[0]) * 100:.1f} cm long, the one learnt "
                          f"{prior.length * 100:.1f} cm (a partial view)")
     if prior is not None and prior.far_off(rms, 1.5):
         raise ValueError(f"the outline is {rms * 1e3:.2f} mm off the points, the one learnt "
