@@ -143,6 +143,8 @@ class Perception:
         self.velocity = np.zeros(3)
         self.last_stamp_ns = 0
         self.misses = 0
+        self.frame_ns: int | None = None  # the last frame's stamp, the object seen or not
+        self.frame_period_s = np.inf  # the least time between two frames: the camera's
         self.prior: ShapeFit | None = None
         self.axis: np.ndarray | None = None  # the last reported fit's axis, world
         self.frame: np.ndarray | None = None  # and a box's axes (columns)
@@ -155,6 +157,9 @@ class Perception:
     def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
         self.frames += 1
+        if self.frame_ns is not None and stamp_ns > self.frame_ns:
+            self.frame_period_s = min(self.frame_period_s, (stamp_ns - self.frame_ns) * 1e-9)
+        self.frame_ns = stamp_ns
         eye = T_world_cam[:3, 3]
         if self.track is None:
             found = self._acquire(points, T_world_cam, eye)
@@ -248,14 +253,15 @@ class Perception:
         # width, and searched for within that, a 5 Hz camera lost it in one frame in three.
         size = max(self.prior.length, 2.0 * self.prior.radius) if self.prior is not None \
             else cfg.object_size_m[1] / 2
-        # After a miss, where it may be grows with the time since it was last seen, at its
-        # top speed of late: a swaying object turns back, and a 5 Hz camera's frames a few
+        # Where it may be grows with the time it has gone unseen beyond a frame, at its top
+        # speed of late: a swaying object turns back, and a 5 Hz camera's frames a few
         # misses apart found it 10-25 cm off the track's straight line (random-67-000, lost
         # for a second after each miss, 16 % of frames observed). Not on every frame: the
         # wider search took in more than the object, and a 30 Hz camera's ellipsoid was
         # refused in 172 frames of 900, not 52 (random-7-028).
-        top = max((v for _, v in self.speeds), default=0.0) if self.misses else 0.0
-        radius = size / 2 + cfg.gate_m + top * dt
+        unseen = dt - self.frame_period_s if np.isfinite(self.frame_period_s) else 0.0
+        top = max((v for _, v in self.speeds), default=0.0)
+        radius = size / 2 + cfg.gate_m + top * max(unseen, 0.0)
         centre_cam = (predicted - T[:3, 3]) @ T[:3, :3]  # predicted centre in the camera frame
         offset = points - centre_cam
         near = np.einsum("ij,ij->i", offset, offset) < radius**2
