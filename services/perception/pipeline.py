@@ -144,7 +144,7 @@ class Perception:
         self.last_stamp_ns = 0
         self.misses = 0
         self.frame_ns: int | None = None  # the last frame's stamp, the object seen or not
-        self.frame_period_s = np.inf  # the least time between two frames: the camera's
+        self.intervals: deque[float] = deque(maxlen=20)  # s, between the last frames
         self.prior: ShapeFit | None = None
         self.axis: np.ndarray | None = None  # the last reported fit's axis, world
         self.frame: np.ndarray | None = None  # and a box's axes (columns)
@@ -158,7 +158,7 @@ class Perception:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
         self.frames += 1
         if self.frame_ns is not None and stamp_ns > self.frame_ns:
-            self.frame_period_s = min(self.frame_period_s, (stamp_ns - self.frame_ns) * 1e-9)
+            self.intervals.append((stamp_ns - self.frame_ns) * 1e-9)
         self.frame_ns = stamp_ns
         eye = T_world_cam[:3, 3]
         if self.track is None:
@@ -259,7 +259,7 @@ class Perception:
         # for a second after each miss, 16 % of frames observed). Not on every frame: the
         # wider search took in more than the object, and a 30 Hz camera's ellipsoid was
         # refused in 172 frames of 900, not 52 (random-7-028).
-        unseen = dt - self.frame_period_s if np.isfinite(self.frame_period_s) else 0.0
+        unseen = dt - float(np.median(self.intervals)) if self.intervals else 0.0
         top = max((v for _, v in self.speeds), default=0.0)
         radius = size / 2 + cfg.gate_m + top * max(unseen, 0.0)
         centre_cam = (predicted - T[:3, 3]) @ T[:3, :3]  # predicted centre in the camera frame
