@@ -52,7 +52,8 @@ class PerceptionConfig(BaseModel):
     span_frames: int = Field(50, description="frames whose ends along the axis are pooled: "
                              "a bottle's neck is seen in some views, not all")
     speed_memory_s: float = Field(3.0, description="the object's top speed over this long "
-                                  "(a sway's period or more) widens the search after a miss")
+                                  "(a sway's period or more) widens the search once it has "
+                                  "gone unseen longer than a frame")
 
 
 @dataclass
@@ -281,9 +282,9 @@ class Perception:
 
     def _update_track(self, fit: ShapeFit, stamp_ns: int) -> None:
         if self.track is not None and stamp_ns > self.last_stamp_ns:
-            dt = (stamp_ns - self.last_stamp_ns) * 1e-9
-            self.velocity = 0.5 * self.velocity + 0.5 * (fit.centre - self.track) / dt
-            self.speeds.append((stamp_ns, float(np.linalg.norm(fit.centre - self.track)) / dt))
+            step = (fit.centre - self.track) / ((stamp_ns - self.last_stamp_ns) * 1e-9)
+            self.velocity = 0.5 * self.velocity + 0.5 * step
+            self.speeds.append((stamp_ns, float(np.linalg.norm(step))))
             while self.speeds[0][0] < stamp_ns - self.cfg.speed_memory_s * 1e9:
                 self.speeds.popleft()
         else:
