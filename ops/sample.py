@@ -34,24 +34,32 @@ def default_recording() -> Path:
     return cached_recording(**SAMPLE)
 
 
+def recording_path(scenario: object = None, **config: object) -> Path:
+    """Where :func:`cached_recording` keeps the recording of ``scenario`` or ``config``: the
+    file name says the main ones and a hash of all of them."""
+    from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig
+
+    if scenario is not None:
+        digest = hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:8]
+        stem = f"{scenario.name}-{scenario.seconds:g}s-seed{scenario.seed}"
+    else:
+        cfg = RecordConfig(**config)
+        digest = hashlib.sha256(repr(cfg).encode()).hexdigest()[:8]
+        stem = f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
+    return cache_dir() / "recordings" / f"{stem}-v{GENERATOR_VERSION}-{digest}.mcap"
+
+
 def cached_recording(scenario: object = None, **config: object) -> Path:
     """A wave-tank recording from the cache, generated (with a progress bar) on first use.
 
     Either a :class:`~wavegrasp.wavetank.scenario.Scenario`, or ``config`` holding
     :class:`~wavegrasp.wavetank.record.RecordConfig`'s fields (wave, object, seconds, seed,
-    ...); the file name says the main ones and a hash of all of them.
+    ...): :func:`recording_path`.
     """
-    from wavegrasp.wavetank.record import GENERATOR_VERSION, RecordConfig, generate
+    from wavegrasp.wavetank.record import RecordConfig, generate
 
-    if scenario is not None:
-        what = scenario
-        digest = hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:8]
-        stem = f"{scenario.name}-{scenario.seconds:g}s-seed{scenario.seed}"
-    else:
-        what = cfg = RecordConfig(**config)
-        digest = hashlib.sha256(repr(cfg).encode()).hexdigest()[:8]
-        stem = f"wave{cfg.wave}-{cfg.object}-{cfg.seconds:g}s-seed{cfg.seed}"
-    path = cache_dir() / "recordings" / f"{stem}-v{GENERATOR_VERSION}-{digest}.mcap"
+    what = scenario if scenario is not None else RecordConfig(**config)
+    path = recording_path(scenario, **config)
     if not path.exists():
         print(f"generating {path} (first use only)", file=sys.stderr)
         path.parent.mkdir(parents=True, exist_ok=True)

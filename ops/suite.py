@@ -5,7 +5,10 @@ Draws ``--scenarios`` scenarios with ``--seed`` (arm mount, object, sea, camera:
 reach or its jaw's width (listed, not run), and runs the rest as the paper's experiment runs
 its configurations: one lockstep ``wavegrasp up`` of ``--trials`` trials per scenario and
 predictor, ``--jobs`` side by side, deterministic in the seed; each recording leaves room for
-every attempt of every trial (:func:`recording_seconds`). Writes ``report.json``,
+every attempt of every trial (:func:`recording_seconds`). With ``--discard-recordings`` each
+scenario's recording is generated when its runs come up and deleted after them (ten trials
+of three attempts make 255 s recordings, about 2.2 GB each: 40 of them do not fit on most
+disks), so at most ``--jobs`` are on disk at once. Writes ``report.json``,
 ``report.md`` and PNG plots to ``--out``: success (first attempt, after reattempts), the
 planner's plan rate, failures, overall and by factor.
 """
@@ -29,7 +32,7 @@ from wavegrasp.ops.experiment import (
     run_recording,
     trial_results,
 )
-from wavegrasp.ops.sample import cached_recording
+from wavegrasp.ops.sample import cached_recording, recording_path
 from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.scenario import Scenario
 from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
@@ -81,8 +84,8 @@ def factors(s: Scenario) -> dict[str, float | str]:
 
 
 def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
-                 out: Path) -> ScenarioResult:
-    recording = cached_recording(scenario)
+                 out: Path, recording: Path | None = None) -> ScenarioResult:
+    recording = recording or cached_recording(scenario)
     run_dir = out / "runs" / f"{predictor}-{scenario.name}"
     summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
@@ -95,6 +98,20 @@ def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
                           observed_share(summary),
                           trials=trials, success_attempt=success, failures=failures,
                           unfinished=unfinished, seconds=seconds, exit_code=code)
+
+
+def run_discarding(generator: ProcessPoolExecutor, predictors: list[str], scenario: Scenario,
+                   trials: int, attempts: int, out: Path) -> list[ScenarioResult]:
+    """Every predictor on ``scenario``, its recording generated in ``generator`` first and
+    deleted after unless it was in the cache already."""
+    generated = not recording_path(scenario).exists()
+    recording = generator.submit(_recording, scenario).result()
+    try:
+        return [run_scenario(pred, scenario, trials, attempts, out, recording)
+                for pred in predictors]
+    finally:
+        if generated:
+            recording.unlink(missing_ok=True)
 
 
 def observed_share(summary: dict) -> float:
@@ -127,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--attempts", type=int, default=3)
     p.add_argument("--predictors", default=DEFAULT_MODEL)
     p.add_argument("--jobs", type=int, default=(os.cpu_count() or 1) + 1)
+    p.add_argument("--discard-recordings", action="store_true",
+                   help="generate each recording when its runs come up and delete it after "
+                   "them, unless it was in the cache before (disk: --jobs recordings at once)")
     a = p.parse_args(argv)
     predictors = a.predictors.split(",")
     if bad := [x for x in predictors if x not in MODELS]:
@@ -139,16 +159,21 @@ def main(argv: list[str] | None = None) -> int:
                                     seconds=recording_seconds(a.trials, a.attempts))
     out_of_reach = {s.name: why for s in drawn if (why := grasp_verdict(s))}
     runnable = [s for s in drawn if s.name not in out_of_reach]
-    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
-        list(tqdm(pool.map(_recording, runnable), total=len(runnable), desc="recordings",
-                  unit="rec"))
-    jobs = [(pred, s) for pred in predictors for s in runnable]
     results: list[ScenarioResult] = []
-    with ThreadPoolExecutor(a.jobs) as pool:
-        futures = [pool.submit(run_scenario, pred, s, a.trials, a.attempts, a.out)
-                   for pred, s in jobs]
+    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as generator, \
+            ThreadPoolExecutor(a.jobs) as pool:  # generating is CPU-bound, runs are processes
+        if a.discard_recordings:
+            futures = [pool.submit(run_discarding, generator, predictors, s, a.trials,
+                                   a.attempts, a.out) for s in runnable]
+        else:
+            list(tqdm(generator.map(_recording, runnable), total=len(runnable),
+                      desc="recordings", unit="rec"))
+            futures = [pool.submit(run_scenario, pred, s, a.trials, a.attempts, a.out)
+                       for pred in predictors for s in runnable]
         for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
-            results.append(f.result())
+            done = f.result()
+            results.extend(done if isinstance(done, list) else [done])
+    jobs = [(pred, s) for pred in predictors for s in runnable]
     order = {(pred, s.name): i for i, (pred, s) in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.scenario)])
     from wavegrasp.ops.suite_report import write_report

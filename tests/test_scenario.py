@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -132,11 +133,14 @@ def test_reach_is_judged_from_the_arm_model_over_the_whole_swing() -> None:
 
 def test_eval_suite_random_runs_drawn_scenarios_and_reports_them_by_factor(
         tmp_path: Path) -> None:
-    out = tmp_path / "suite"
+    out, cache = tmp_path / "suite", tmp_path / "cache"
     result = subprocess.run(wavegrasp_cmd(
         "eval", "--suite", "random", "--scenarios", "2", "--seed", "3", "--trials", "1",
-        "--jobs", "2", "--out", str(out)), capture_output=True, text=True, timeout=900)
+        "--jobs", "2", "--discard-recordings", "--out", str(out)), capture_output=True,
+        text=True, timeout=900, env={**os.environ, "WAVEGRASP_CACHE": str(cache)})
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    # Each recording was generated for its runs and is gone after them.
+    assert "generating" in result.stderr and not list(cache.rglob("*.mcap"))
     report = json.loads((out / "report.json").read_text())
     drawn, _ = draw_scenarios(2, 3, seconds=recording_seconds(1, 3))
     ran = [r["scenario"] for r in report["runs"]]
