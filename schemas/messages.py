@@ -104,6 +104,12 @@ class ObjectObservation(Message):
                                        description="a box: its extent along side")
     breadth_m: float | None = Field(None, gt=0.0, le=MAX_COORDINATE_M,
                                     description="a box: its extent across both axis and side")
+    seabed_normal: Vec3 | None = Field(None, description="the seabed plane seen in the cloud: "
+                                       "its unit normal towards the water, world; None: not "
+                                       "seen")
+    seabed_offset_m: float | None = Field(None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M,
+                                          description="the seabed plane: the points p with "
+                                          "seabed_normal . p + seabed_offset_m = 0")
 
 
 class ObjectMesh(Message):

@@ -101,6 +101,41 @@ def test_bad_clouds_give_observation_less_frames_with_reasons(recording: Path) -
         bus.close()
 
 
+def test_observations_carry_the_seabed_seen_in_the_cloud(recording: Path) -> None:
+    """The seabed plane perception removes from the cloud goes out with each observation
+    (the planner keeps the arm off it): the wave tank's floor is z = 0, normal up."""
+    bus = Bus(Settings(service="perception", zenoh_mode="peer", zenoh_connect=[],
+                       zenoh_listen=[]))
+    try:
+        PerceptionService(PerceptionSettings(service="perception"), bus=bus)
+        seen: list[ObjectObservation] = []
+        bus.subscribe("wavegrasp/perception/object", lambda m, d: seen.append(m),
+                      ObjectObservation)
+        routes = {key: i for i, key in enumerate(bus.subscriptions)}
+        fed = 0
+        for m in open_recording(recording).messages():
+            if fed == 6:
+                break
+            if m.topic in ("/tf_static", "/trisect/points"):
+                key = m.topic.lstrip("/")
+                bus.dispatch(Delivery(key, m.cdr, CDR, None, 0, routes[key]))
+                fed += key == "trisect/points"
+
+        def all_seen() -> bool:
+            while not bus.inbox.empty():
+                bus.dispatch(bus.inbox.get())
+            return len(seen) >= 5
+
+        assert wait_until(all_seen, timeout=10)
+        found = [m for m in seen if m.centroid is not None]
+        assert found, [m.reason for m in seen]
+        for m in found:
+            assert m.seabed_normal is not None and m.seabed_offset_m is not None
+            assert m.seabed_normal.z > 0.999 and abs(m.seabed_offset_m) < 0.01
+    finally:
+        bus.close()
+
+
 def test_the_mesh_is_rebuilt_as_its_views_double_and_at_least_every_max_period() -> None:
     """The first mesh after 10 frames (1 s at 10 Hz), then one each time the frames in it
     have doubled, and at least one every 20 s once that is longer."""

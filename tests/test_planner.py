@@ -791,3 +791,65 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
 def told(service: PlannerService) -> dict[str, int]:
     """The planner's counters but its candidates' rejections."""
     return {k: v for k, v in service.counters.items() if not k.startswith("rejected")}
+
+
+def lowest_link(arm: ArmModel, T_world_base: np.ndarray, q: np.ndarray) -> float:
+    """The least height, metres, of any link's surface above z = 0 over the poses ``q``
+    (shape (k, n) or (n,), radians)."""
+    p0, p1, radius = arm.capsules_batch(np.atleast_2d(q))
+    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
+    return float((np.minimum((p0 @ R.T + t)[..., 2], (p1 @ R.T + t)[..., 2]) - radius).min())
+
+
+def test_an_arm_mounted_near_the_seabed_keeps_its_links_off_it(arm: ArmModel) -> None:
+    """A 9 x 22 cm bottle 43 cm from the shoulder, the mount 16 cm above the seabed and
+    turned 48 degrees away (random-71-032): the move from home to the first standby swept
+    the forearm 11 cm into the seabed, where the sim's arm jammed, and neither trial was
+    planned. Given the seabed perception sees, every standby move the planner makes and
+    every plan from a standby keep the links above it."""
+    rest = np.array([0.0, 0.0, 0.583])
+    T = mounted(rest, 0.432, -95.4, -0.324, 47.72)
+    path = swinging(rest, (0.10, 0.0, 0.01), 1.393, 40)
+    seen = path(0.0).positions
+    blind = Body(0.0445, 0.108, np.array([0.0, 0.0, 1.0]))
+    seeing = replace(blind, seabed=np.array([0.0, 0.0, 1.0, 0.0]))
+    cfg = PlannerConfig()
+    poses = standby_poses(arm, T, seen, blind)
+    move = standby_move(arm, T, arm.q_home, poses[0], path(0.0), 0.0, blind, cfg,
+                        via=poses[1:], swept=seen)
+    assert not isinstance(move, str) and lowest_link(arm, T, move[1]) < -0.05
+    moves, plans = 0, 0
+    poses = standby_poses(arm, T, seen, seeing)
+    for j, q_standby in enumerate(poses):
+        assert lowest_link(arm, T, q_standby) > 0.0
+        move = standby_move(arm, T, arm.q_home, q_standby, path(0.0), 0.0, seeing, cfg,
+                            via=[q for k, q in enumerate(poses) if k != j], swept=seen)
+        if isinstance(move, str):
+            continue
+        moves += 1
+        assert lowest_link(arm, T, move[1]) > 0.0
+        for now in 10.0 + np.arange(4) * 1.393 / 4:
+            plan = plan_grasp(path(now), now, arm, T, q_standby, seeing, cfg)
+            if isinstance(plan, Plan):
+                plans += 1
+                assert lowest_link(arm, T, plan.q) > 0.0
+    assert moves >= 1 and plans >= 1
+
+
+def test_a_seabed_above_the_arms_mount_is_not_taken(router: Router) -> None:
+    """A plane fitted above the mount (a misfit: every pose would be inside it) is dropped
+    and counted; one below it is kept for the collision check."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        mount = np.eye(4)
+        mount[:3, 3] = [0.5, 0.0, 0.3]
+        service.tf.update([("world", service.arm.base_link, mount)])
+        for height, kept in ((0.4, False), (0.1, True)):
+            service.on_observation(ObjectObservation(
+                header=new_header("perception", 0, 0), centroid=Vec3(x=0.0, y=0.0, z=0.6),
+                radius_m=0.04, shape="sphere", seabed_normal=Vec3(x=0.0, y=0.0, z=1.0),
+                seabed_offset_m=-height), Delivery("o", b"", "", None, 0, 0))
+            assert (service.body.seabed is not None) == kept
+        assert service.counters["seabed ignored: the arm's mount is not above it"] == 1
+    finally:
+        service.bus.close()

@@ -62,11 +62,14 @@ class PerceptionSettings(Settings):
 
 
 def observation(header: Header, fit: ShapeFit, points_used: int,
-                span: tuple[float, float] | None = None) -> ObjectObservation:
+                span: tuple[float, float] | None = None,
+                seabed: np.ndarray | None = None) -> ObjectObservation:
     """The observation of a frame whose object was fitted with ``fit`` from ``points_used``
     points; a box's also carries its faces across its axis. ``span``: where it ends along
     its axis, metres from its centroid (:func:`~wavegrasp.perception.pipeline.axial_span`;
-    None: the fit's length either side of it)."""
+    None: the fit's length either side of it). ``seabed``: the seabed plane found in the
+    cloud, (a, b, c, d), world, unit normal towards the water (the planner keeps the arm
+    off it); None if none was."""
     quality = min(1.0, points_used / 150) * min(1.0, 0.003 / max(fit.rms, 1e-6))
     box = {}
     if fit.frame is not None and fit.size is not None:
@@ -77,7 +80,9 @@ def observation(header: Header, fit: ShapeFit, points_used: int,
         header=header, centroid=Vec3.of(fit.centre), points_used=points_used, quality=quality,
         sigma_m=fit.sigma, shape=fit.shape, axis=Vec3.of(fit.axis), radius_m=fit.radius,
         length_m=fit.length if span is None else span[1] - span[0],
-        axial_offset_m=(span[0] + span[1]) / 2 if span else None, fit_rms_m=fit.rms, **box)
+        axial_offset_m=(span[0] + span[1]) / 2 if span else None, fit_rms_m=fit.rms,
+        seabed_normal=None if seabed is None else Vec3.of(seabed[:3]),
+        seabed_offset_m=None if seabed is None else float(seabed[3]), **box)
 
 
 def mesh_worker_setup(cpus: str) -> None:
@@ -203,7 +208,7 @@ class PerceptionService(Service):
         assert result.fit is not None
         self.counters["observed"] += 1
         self.bus.publish(OBJECT_KEY, observation(header, result.fit, len(result.points),
-                                                 result.span))
+                                                 result.span, self.perception.seabed))
 
     def start_mesh_if_due(self) -> None:
         """Rebuild the mesh on the worker once the frames in it have doubled, at least every

@@ -148,6 +148,9 @@ class PlannerService(Service):
                      msg.header.stamp_ns)
         if msg.radius_m is not None:  # the object's size and axis, for the collision check
             self.body = Body.from_observation(msg)
+            if self.body.seabed is not None and not self.over(self.body.seabed):
+                self.counters["seabed ignored: the arm's mount is not above it"] += 1
+                self.body = replace(self.body, seabed=None)
             # A box's faces fix its orientation, a long body's outline its axis: both rock
             # with the waves (a 31 cm bottle 25 degrees either way, and the palm met it
             # where it had turned since the plan). A body nearly as wide as it is long is
@@ -162,6 +165,16 @@ class PlannerService(Service):
                 self.counters["turns: axis misfit skipped"] += 1
             else:
                 self.frames.append((msg.header.stamp_ns, orientation))
+
+    def over(self, plane: np.ndarray) -> bool:
+        """Is the arm's mount above ``plane`` (a, b, c, d), world, unit normal up? A seabed
+        found above it is a misfit (every pose of the arm would be inside it); True while
+        the mount is not known yet."""
+        try:
+            t = self.tf.lookup("world", self.arm.base_link)[:3, 3]
+        except ValueError:
+            return True
+        return float(plane[:3] @ t + plane[3]) > 0.0
 
     def see(self, centroid: np.ndarray, stamp_ns: int) -> None:
         """The object's centroid, shape (3,), metres, world, observed at ``stamp_ns``."""

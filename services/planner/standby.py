@@ -48,14 +48,15 @@ def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, bod
         return []
     T_base_world = np.linalg.inv(T_world_base)
     grasps = [T_base_world @ T for T in trial_grasps(arm, T_world_base, seen, body)]
+
+    def gap(q: np.ndarray, seen_world: np.ndarray = seen, in_world: Body = body) -> float:
+        return clearance(arm, T_world_base, q, seen_world, in_world)  # the seabed's in world
+
     seen = seen @ T_base_world[:3, :3].T + T_base_world[:3, 3]
     c = seen.mean(axis=0)
     sway = float(np.linalg.norm(seen - c, axis=1).max())
     facing = arm.facing(c)
     body = body.rotated(T_base_world[:3, :3])
-
-    def gap(q: np.ndarray) -> float:
-        return clearance(arm, np.eye(4), q, seen, body)
 
     def solved(q: np.ndarray) -> tuple[int, float]:
         """How many trial grasps solve from q on its branch, and the mean time (s, at the
