@@ -21,12 +21,6 @@ MODELS = ("blend", "harmonic", "linear")
 DEFAULT_MODEL = "blend"
 
 
-#: seconds: the longest lead forecast. An arm that needs 2.4 s to reach a slow swing's
-#: near end (2.35 s period) found it 2.5 s ahead and again 4.9 s ahead: beyond a 4 s forecast,
-#: it planned 38 % of predictions (random-7-004, offline); with 6 s, 78 %.
-MAX_LEAD_S = 6.0
-
-
 class Predictor:
     """Bookkeeping shared by the models: time checks, restarts, error tracking.
 
@@ -39,8 +33,7 @@ class Predictor:
     name = "base"
     min_measured = 0
 
-    def __init__(self, dt: float = 0.1, max_lead_s: float = MAX_LEAD_S,
-                 max_gap_s: float = 0.5) -> None:
+    def __init__(self, dt: float = 0.1, max_lead_s: float = 4.0, max_gap_s: float = 0.5) -> None:
         self.dt, self.max_gap_s = dt, max_gap_s
         self.leads = np.arange(int(round(max_lead_s / dt)) + 1) * dt
         self.tracker = ErrorTracker(dt, len(self.leads))
