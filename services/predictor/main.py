@@ -17,7 +17,7 @@ from pydantic import Field
 
 from wavegrasp.checks import StampOrder
 from wavegrasp.predictor.forecast import Forecast
-from wavegrasp.predictor.models import DEFAULT_MODEL, MAX_LEAD_S, MODELS, make_predictor
+from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS, make_predictor
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -31,8 +31,7 @@ UNKNOWN_SIGMA_M = 1.0  # before any error has been measured at a lead
 
 class PredictorSettings(Settings):
     predictor: str = Field(DEFAULT_MODEL, description=f"one of {', '.join(MODELS)}")
-    horizon_periods: float = Field(3.5, ge=1.0, description="published lead, capped at "
-                                     f"{MAX_LEAD_S:g} s")
+    horizon_periods: float = Field(3.5, ge=1.0, description="published lead, capped at 4 s")
 
 
 class PredictorService(Service):

@@ -20,14 +20,6 @@ from wavegrasp.predictor.lagreg import LagRegression
 MODELS = ("blend", "harmonic", "linear")
 DEFAULT_MODEL = "blend"
 
-#: seconds: the longest lead forecast. An arm that needs 2.4 s to reach a slow swing's near
-#: end (2.35 s period) finds it 2.5 s ahead and next 4.9 s ahead (random-7-004).
-MAX_LEAD_S = 6.0
-#: seconds: the blend's lag regression forecasts this far, the harmonic model alone beyond.
-#: The regression learns only from rows whose every lead has come: taught to 6 s its error
-#: at the gate's 0.2 s lead rose from a few mm to about 20 mm (ε is 10 mm).
-LAG_LEAD_S = 4.0
-
 
 class Predictor:
     """Bookkeeping shared by the models: time checks, restarts, error tracking.
@@ -41,8 +33,7 @@ class Predictor:
     name = "base"
     min_measured = 0
 
-    def __init__(self, dt: float = 0.1, max_lead_s: float = MAX_LEAD_S,
-                 max_gap_s: float = 0.5) -> None:
+    def __init__(self, dt: float = 0.1, max_lead_s: float = 4.0, max_gap_s: float = 0.5) -> None:
         self.dt, self.max_gap_s = dt, max_gap_s
         self.leads = np.arange(int(round(max_lead_s / dt)) + 1) * dt
         self.tracker = ErrorTracker(dt, len(self.leads))
@@ -74,8 +65,7 @@ class Predictor:
             return None
         forecast.sigma = np.sqrt(self.tracker.sigma(forecast.leads) ** 2 + self.observation_var)
         if forecast.warm:
-            if len(forecast.leads) == len(self.leads):  # not the blend's regression alone
-                self.tracker.keep(forecast)
+            self.tracker.keep(forecast)
             if self.min_measured:
                 k = min(len(self.leads) - 1, int(round(forecast.period_s / self.dt)))
                 forecast.warm = self.tracker.measured(self.leads[k]) >= self.min_measured
@@ -150,19 +140,18 @@ class HarmonicPredictor(Predictor):
 
 
 class BlendPredictor(Predictor):
-    """Lag regression and harmonic model, weighted per lead by their recent errors; past
-    ``lag_lead_s`` (or while the regression is not ready), the harmonic model alone."""
+    """Lag regression and harmonic model, weighted per lead by their recent errors."""
 
     name = "blend"
     min_measured = 20
 
-    def __init__(self, lag_lead_s: float = LAG_LEAD_S, **kw: float) -> None:
+    def __init__(self, **kw: float) -> None:
         super().__init__(**kw)
-        self.n_lag = min(len(self.leads), int(round(lag_lead_s / self.dt)) + 1)
-        self.lag = LagRegression(dt=self.dt, horizon=self.n_lag - 1, max_gap_s=self.max_gap_s)
+        self.lag = LagRegression(dt=self.dt, horizon=len(self.leads) - 1,
+                                 max_gap_s=self.max_gap_s)
         self.harmonic = HarmonicModel()
         # Short memory: the weights follow which model is better now.
-        self.lag_errors = ErrorTracker(self.dt, self.n_lag, memory=20)
+        self.lag_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
         self.harmonic_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
 
     def restart(self) -> None:
@@ -183,33 +172,29 @@ class BlendPredictor(Predictor):
         if harmonic is not None:
             self.harmonic_errors.keep(Forecast(t0, self.leads, harmonic, self.leads * np.nan, 0))
         if lag is not None:
-            self.lag_errors.keep(Forecast(t0, self.leads[:self.n_lag], lag[1],
-                                          self.leads[:self.n_lag] * np.nan, 0))
-        if harmonic is None:  # the regression alone, as far as it reaches
-            if lag is None:
-                return None
-            w_lag = np.ones(self.n_lag)
-            positions, leads = lag[1], self.leads[:self.n_lag]
+            self.lag_errors.keep(Forecast(t0, self.leads, lag[1], self.leads * np.nan, 0))
+        if lag is None and harmonic is None:
+            return None
+        if lag is None or harmonic is None:
+            positions, w_lag = (harmonic, np.zeros(len(self.leads))) if lag is None else (
+                lag[1], np.ones(len(self.leads)))
         else:
-            w_lag = np.zeros(len(self.leads))
-            positions, leads = harmonic.copy(), self.leads
-            if lag is not None:
-                mse_lag = self.lag_errors.recent(self.leads[:self.n_lag]) ** 2
-                mse_h = self.harmonic_errors.recent(self.leads[:self.n_lag]) ** 2
-                w_lag[:self.n_lag] = np.nan_to_num(
-                    mse_h / np.maximum(mse_lag + mse_h, 1e-12), nan=0.5)
-                positions[:self.n_lag] = (w_lag[:self.n_lag, None] * lag[1]
-                                          + (1 - w_lag[:self.n_lag, None]) * harmonic[:self.n_lag])
+            mse_lag = self.lag_errors.recent(self.leads) ** 2
+            mse_h = self.harmonic_errors.recent(self.leads) ** 2
+            w_lag = np.where(np.isnan(mse_lag) | np.isnan(mse_h), 0.5,
+                             mse_h / np.maximum(mse_lag + mse_h, 1e-12))
+            w_lag = np.nan_to_num(w_lag, nan=0.5)
+            positions = w_lag[:, None] * lag[1] + (1 - w_lag[:, None]) * harmonic
         omega = self.harmonic.omega
         period = 2 * np.pi / omega if omega else np.nan
         params = self.harmonic.parameters()
-        k = min(len(w_lag) - 1, int(round(period / self.dt))) if omega else 0
+        k = min(len(self.leads) - 1, int(round(period / self.dt))) if omega else 0
         params["lag_weight_at_period"] = float(w_lag[k])
         # Either model alone may forecast: the lag regression needs about 9 s without a gap
         # over max_gap_s, which a slow camera or a perception that misses frames may never
         # give it; the harmonic model fits whatever it is given.
         ready = bool(omega) and (self.lag.warm or self.harmonic.warm)
-        return Forecast(t0, leads, positions, leads * np.nan, period, params, ready)
+        return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, ready)
 
 
 def make_predictor(name: str, **kw: float) -> Predictor:
