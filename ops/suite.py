@@ -100,15 +100,21 @@ def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
                           unfinished=unfinished, seconds=seconds, exit_code=code)
 
 
+def run_predictors(predictors: list[str], scenario: Scenario, trials: int, attempts: int,
+                   out: Path, recording: Path | None = None) -> list[ScenarioResult]:
+    """Each of ``predictors`` on ``scenario``, one after the other."""
+    return [run_scenario(pred, scenario, trials, attempts, out, recording)
+            for pred in predictors]
+
+
 def run_discarding(generator: ProcessPoolExecutor, predictors: list[str], scenario: Scenario,
                    trials: int, attempts: int, out: Path) -> list[ScenarioResult]:
-    """Every predictor on ``scenario``, its recording generated in ``generator`` first and
-    deleted after unless it was in the cache already."""
+    """:func:`run_predictors`, the recording generated in ``generator`` first and deleted
+    after unless it was in the cache already."""
     generated = not recording_path(scenario).exists()
     recording = generator.submit(_recording, scenario).result()
     try:
-        return [run_scenario(pred, scenario, trials, attempts, out, recording)
-                for pred in predictors]
+        return run_predictors(predictors, scenario, trials, attempts, out, recording)
     finally:
         if generated:
             recording.unlink(missing_ok=True)
@@ -168,11 +174,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             list(tqdm(generator.map(_recording, runnable), total=len(runnable),
                       desc="recordings", unit="rec"))
-            futures = [pool.submit(run_scenario, pred, s, a.trials, a.attempts, a.out)
+            futures = [pool.submit(run_predictors, [pred], s, a.trials, a.attempts, a.out)
                        for pred in predictors for s in runnable]
         for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
-            done = f.result()
-            results.extend(done if isinstance(done, list) else [done])
+            results.extend(f.result())
     jobs = [(pred, s) for pred in predictors for s in runnable]
     order = {(pred, s.name): i for i, (pred, s) in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.scenario)])
