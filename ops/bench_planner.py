@@ -11,6 +11,8 @@ with SEED (30 s recordings, or ``--only I,J`` of them at ``--seconds``; those th
 cannot grasp at all are listed, not scored), with
 the most frequent rejections of each. The planner is given the object as perception last
 reported it, and each plan's grasp is tried first on the next prediction, as in a run.
+``--each-standby`` also scores each scenario from every one of its standby poses (the
+planner service waits in the first and tries the others when nothing plans for a period).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from wavegrasp.ops.sample import cached_recording
 from wavegrasp.perception.evaluate import Track, run_perception
 from wavegrasp.perception.main import observation
 from wavegrasp.planner.collision import Body
-from wavegrasp.planner.evaluate import score
+from wavegrasp.planner.evaluate import score, warmup_sway
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.schemas import Header
@@ -50,10 +52,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenarios", type=int, default=8)
     p.add_argument("--only", metavar="I,J", help="with --suite: only these scenarios (their "
                    "numbers, as in random-SEED-NNN), drawn with --seconds")
+    p.add_argument("--each-standby", action="store_true", help="with --suite: also score "
+                   "each scenario from every standby pose")
     a = p.parse_args(argv)
     if a.suite is not None:
         only = None if a.only is None else [int(i) for i in a.only.split(",")]
-        return suite(a.suite, a.scenarios, only, a.seconds if only else 30.0)
+        return suite(a.suite, a.scenarios, only, a.seconds if only else 30.0,
+                     a.each_standby)
     print("| wave | object | planned | planning median (ms) | p90 (ms) | grasp error median (mm) |")
     print("|---|---|---|---|---|---|")
     all_times, all_errors, planned, attempts = [], [], 0, 0
@@ -78,10 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def suite(seed: int, count: int, only: list[int] | None = None, seconds: float = 30.0
-          ) -> int:
+def suite(seed: int, count: int, only: list[int] | None = None, seconds: float = 30.0,
+          each_standby: bool = False) -> int:
     from scipy.spatial.transform import Rotation
 
+    from wavegrasp.arm import ArmModel
+    from wavegrasp.planner.standby import standby_poses
     from wavegrasp.wavetank.record import arm_mount
     from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
 
@@ -112,6 +119,12 @@ def suite(seed: int, count: int, only: list[int] | None = None, seconds: float =
               f"| {np.linalg.norm(s.shoulder() - s.rest):.2f} | {rates[-1]:.1%} "
               f"| {np.median(r.times_ms):.1f} | {np.percentile(r.times_ms, 90):.1f} "
               f"| {top} |", flush=True)
+        if each_standby:
+            body = planner_body(track)
+            for j, q in enumerate(standby_poses(ArmModel.load(), T, warmup_sway(track), body)):
+                r = score(track, T, body, q_standby=q)
+                print(f"| {s.name}, standby pose {j} | {np.round(q, 2).tolist()} | "
+                      f"| {r.plans / max(r.attempts, 1):.1%} | | | |", flush=True)
     if rates:
         print(f"\n{len(rates)} scenarios scored: planned {np.mean(rates):.1%} on average, "
               f"worst {min(rates):.1%}; {sum(x >= 0.95 for x in rates)} at 95 % or more")

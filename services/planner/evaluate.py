@@ -34,20 +34,27 @@ class PlannerScore:
     rejected: Counter = field(default_factory=Counter)
 
 
+def warmup_sway(track: Track, warmup_s: float = 10.0) -> np.ndarray:
+    """Where perception saw the object's centroid in the last 100 frames of the warm-up:
+    shape (k, 3), metres, world (NaN where it did not)."""
+    return track.centres[(track.stamps_ns - track.stamps_ns[0]) * 1e-9 < warmup_s][-100:]
+
+
 def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 10.0,
-          cfg: PlannerConfig | None = None) -> PlannerScore:
+          cfg: PlannerConfig | None = None, q_standby: np.ndarray | None = None
+          ) -> PlannerScore:
     """Feed perception's centroids to the default predictor and plan on every warm forecast
     after ``warmup_s``, from the arm's standby pose facing where the object was seen during
     the warm-up (:func:`~wavegrasp.planner.standby.standby_pose`, where the arm waits between
-    attempts), each plan's grasp tried first on the next prediction as the service does.
-    ``body``: the object as perception reports it."""
+    attempts; or from ``q_standby``, radians), each plan's grasp tried first on the next
+    prediction as the service does. ``body``: the object as perception reports it."""
     cfg = cfg or PlannerConfig()
     arm, predictor = ArmModel.load(), make_predictor("blend")
     t_truth = (track.truth_ns - track.stamps_ns[0]) * 1e-9
     times, errors, attempts, plans, rejected = [], [], 0, 0, Counter()
     hint = None
-    seen = track.centres[(track.stamps_ns - track.stamps_ns[0]) * 1e-9 < warmup_s]
-    q_standby = standby_pose(arm, T_world_base, seen[-100:], body)
+    if q_standby is None:
+        q_standby = standby_pose(arm, T_world_base, warmup_sway(track, warmup_s), body)
     for stamp, centre, sigma in zip(track.stamps_ns, track.centres, track.sigmas, strict=True):
         if np.isnan(centre[0]):
             continue
