@@ -784,6 +784,19 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
         assert now - 0.25 >= 10.0 + 1.82  # not before a whole period without a plan
         assert service.counters["standby moves"] == 1, told(service)
         np.testing.assert_allclose(service.standby(T, int(now * 1e9)), good)
+        # Had the probes chosen the third of the poses as solved, when the sway seen moves by
+        # more than standby_moved_m and the poses are solved again, the one nearest it stays
+        # chosen (it was the first again: random-83-002).
+        service._standby = (service._standby[0], T.tobytes(), service._standby[2], poses)
+        service._choice = 2
+        for k, p in enumerate(path(8.0).positions + [0.03, 0.0, 0.0]):
+            service.see(p, int(now * 1e9) + k)
+        later = int((now + 3.0) * 1e9)
+        q = service.standby(T, later)
+        assert service._standby[0] == later  # solved again
+        near = [float(np.abs(p - poses[2]).max()) for p in service._standby[3]]
+        assert near[0] > 0.3 and min(near) < 0.3, np.round(near, 2)
+        np.testing.assert_allclose(q, service._standby[3][int(np.argmin(near))])
     finally:
         service.bus.close()
 
