@@ -108,7 +108,8 @@ def suite(seed: int, count: int, only: list[int] | None = None, seconds: float =
         T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), position
         o = s.object
         track = run_perception(cached_recording(s))
-        r = score(track, T, planner_body(track))
+        body = planner_body(track)
+        r = score(track, T, body)
         if not r.attempts:  # perception's centroids never warmed the predictor
             print(f"| {s.name} | {o.family} | | no warm prediction | | | |", flush=True)
             rates.append(0.0)
@@ -120,7 +121,6 @@ def suite(seed: int, count: int, only: list[int] | None = None, seconds: float =
               f"| {np.median(r.times_ms):.1f} | {np.percentile(r.times_ms, 90):.1f} "
               f"| {top} |", flush=True)
         if each_standby:
-            body = planner_body(track)
             for j, q in enumerate(standby_poses(ArmModel.load(), T, warmup_sway(track), body)):
                 r = score(track, T, body, q_standby=q)
                 print(f"| {s.name}, standby pose {j} | {np.round(q, 2).tolist()} | "
