@@ -26,7 +26,7 @@ from wavegrasp.planner.approach import (
 )
 from wavegrasp.planner.collision import NEAR_M, Body, Turns, clearance, collides, hand_hits
 from wavegrasp.planner.main import PLAN_KEY, STANDBY_KEY, PlannerService, PlannerSettings
-from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
+from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp, quickest_equivalent
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
 from wavegrasp.runtime.bus import Delivery
@@ -246,6 +246,20 @@ def test_too_short_a_horizon_cannot_be_timed(arm: ArmModel, T_world_base: np.nda
     short = PredictedPath(path.times_s[:6], path.positions[:6], path.sigma[:6], path.period_s)
     result = plan_grasp(short, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
     assert isinstance(result, Counter) and not isinstance(result, Plan)
+
+
+def test_a_grasp_is_taken_on_the_wrist_branch_the_arm_reaches_soonest(arm: ArmModel) -> None:
+    # random-73-009: from its standby, inverse kinematics turned the wrist's pitch over,
+    # 3.7 rad; the same grasp with the wrist turned over the other way turns it 0.2.
+    q_now = np.array([-0.97, -1.64, 1.47, -0.8, 1.76, 0.36])
+    q_f = np.array([-1.98, -0.94, 1.84, -1.55, -1.94, 0.71])
+    q, swapped = quickest_equivalent(arm, q_f, q_now)
+    def slowest(q: np.ndarray) -> float:
+        return float(np.max(np.abs(q - q_now) / arm.max_velocity))
+    assert slowest(q) < slowest(q_f) - 0.2
+    jaws = np.diag([-1.0, -1.0, 1.0, 1.0]) if swapped else np.eye(4)
+    np.testing.assert_allclose(arm.forward(q) @ jaws, arm.forward(q_f), atol=1e-9)
+    np.testing.assert_allclose(quickest_equivalent(arm, q_now, q_now)[0], q_now)
 
 
 @pytest.mark.parametrize("axis", [None, np.array([0.0, 0.0, 1.0]), np.array([0.6, 0.0, 0.8])])

@@ -112,3 +112,25 @@ def flip_last_roll(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.nda
     out = q.copy()
     out[-1] = min(options, key=lambda v: abs(v - q_seed[-1]))
     return out
+
+
+def wrist_twins(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarray
+                ) -> list[np.ndarray]:
+    """q and the joint values that put the tool exactly where q does by turning the wrist
+    over: the third-last and last joints turned by pi either way and the second-last
+    negated (a roll-pitch-roll wrist whose axes meet). Only those within limits whose tool
+    pose matches q's (checked, so an arm without such a wrist gets q alone)."""
+    if len(q) < 3:
+        return [q]
+    T = chain.frames(q)[0]
+    out = [q]
+    for a in (-math.pi, math.pi):
+        for b in (-math.pi, math.pi):
+            twin = q.copy()
+            twin[-3] += a
+            twin[-2] = -twin[-2]
+            twin[-1] += b
+            if np.all(twin >= lower) and np.all(twin <= upper) and np.allclose(
+                    chain.frames(twin)[0], T, atol=1e-9):
+                out.append(twin)
+    return out

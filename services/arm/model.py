@@ -278,6 +278,11 @@ class ArmModel:
                         R_target=T_target[:3, :3], position_tol=position_tol,
                         angle_tol=np.radians(angle_tol_deg), max_iter=max_iter)
 
+    def wrist_twins(self, q: np.ndarray) -> list[np.ndarray]:
+        """q (radians, shape (n,)) and the other joint values, within limits, that hold the
+        tool exactly as q does with the wrist turned over (:func:`ik.wrist_twins`)."""
+        return ik.wrist_twins(self._chain, self.lower, self.upper, self.check_q(q))
+
     def inverse_position(self, p: np.ndarray, approach: np.ndarray, q_seed: np.ndarray,
                          position_tol: float = 1e-3, angle_tol_deg: float = 2.0,
                          max_iter: int = 100) -> tuple[np.ndarray, np.ndarray] | None:
