@@ -11,7 +11,12 @@ import numpy as np
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, clearance, collides
-from wavegrasp.planner.plan import PlannerConfig, cheap_rejection, tool_orientations
+from wavegrasp.planner.plan import (
+    PlannerConfig,
+    cheap_rejection,
+    quickest_equivalent,
+    tool_orientations,
+)
 from wavegrasp.planner.timing import Limits, sample_segment, segment
 
 
@@ -64,6 +69,8 @@ def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, bod
         times = []
         for T in grasps:
             q_f = arm.inverse(T, q, max_iter=40, restarts=-1)
+            if q_f is not None:
+                q_f = quickest_equivalent(arm, q_f, q)[0]
             times.append(unsolved_s if q_f is None else
                          float(np.max(np.abs(q_f - q) / arm.max_velocity)))
         return sum(t < unsolved_s for t in times), float(np.mean(times)) if times else 0.0
