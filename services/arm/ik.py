@@ -118,11 +118,8 @@ def wrist_twins(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarra
                 ) -> list[np.ndarray]:
     """q and the joint values that put the tool exactly where q does by turning the wrist
     over: the third-last and last joints turned by pi either way and the second-last
-    negated (a roll-pitch-roll wrist whose axes meet). Only those within limits whose tool
-    pose matches q's (checked, so an arm without such a wrist gets q alone)."""
-    if len(q) < 3:
-        return [q]
-    T = chain.frames(q)[0]
+    negated (a roll-pitch-roll wrist whose axes meet). Only those within limits; none but q
+    for an arm whose wrist does not turn over so (:func:`wrist_turns_over`)."""
     out = [q]
     for a in (-math.pi, math.pi):
         for b in (-math.pi, math.pi):
@@ -130,7 +127,23 @@ def wrist_twins(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarra
             twin[-3] += a
             twin[-2] = -twin[-2]
             twin[-1] += b
-            if np.all(twin >= lower) and np.all(twin <= upper) and np.allclose(
-                    chain.frames(twin)[0], T, atol=1e-9):
+            if np.all(twin >= lower) and np.all(twin <= upper):
                 out.append(twin)
     return out
+
+
+def wrist_turns_over(chain: Chain, lower: np.ndarray, upper: np.ndarray) -> bool:
+    """Does turning the wrist over (:func:`wrist_twins`) keep the tool where it was? Checked
+    by forward kinematics at two arbitrary poses: it holds everywhere or (but for a
+    coincidence) nowhere."""
+    if len(lower) < 3:
+        return False
+    for s in (0.3, 0.7):
+        q = lower + s * (upper - lower)
+        twin = q.copy()
+        twin[-3] += math.pi
+        twin[-2] = -twin[-2]
+        twin[-1] += math.pi
+        if not np.allclose(chain.frames(q)[0], chain.frames(twin)[0], atol=1e-9):
+            return False
+    return True

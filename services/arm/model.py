@@ -74,6 +74,7 @@ class ArmModel:
         self.q_home = np.clip(home, self.lower, self.upper)
         self.reach_m = self._chain.reach_after(min(1, n - 1))
         self._reach_bound = self._chain.reach_after(0)
+        self._wrist_turns_over = ik.wrist_turns_over(self._chain, self.lower, self.upper)
         #: The first joint's origin, array, shape (3,), metres, frame base_link (it never moves).
         self.shoulder = self._chain.frames(self.q_home)[1][0]
         rng = np.random.default_rng(0)
@@ -280,8 +281,12 @@ class ArmModel:
 
     def wrist_twins(self, q: np.ndarray) -> list[np.ndarray]:
         """q (radians, shape (n,)) and the other joint values, within limits, that hold the
-        tool exactly as q does with the wrist turned over (:func:`ik.wrist_twins`)."""
-        return ik.wrist_twins(self._chain, self.lower, self.upper, self.check_q(q))
+        tool exactly as q does with the wrist turned over (:func:`ik.wrist_twins`); q alone
+        for an arm whose wrist does not turn over so."""
+        q = self.check_q(q)
+        if not self._wrist_turns_over:
+            return [q]
+        return ik.wrist_twins(self._chain, self.lower, self.upper, q)
 
     def inverse_position(self, p: np.ndarray, approach: np.ndarray, q_seed: np.ndarray,
                          position_tol: float = 1e-3, angle_tol_deg: float = 2.0,
