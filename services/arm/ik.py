@@ -120,16 +120,8 @@ def wrist_twins(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarra
     over: the third-last and last joints turned by pi either way and the second-last
     negated (a roll-pitch-roll wrist whose axes meet). Only those within limits; none but q
     for an arm whose wrist does not turn over so (:func:`wrist_turns_over`)."""
-    out = [q]
-    for a in (-math.pi, math.pi):
-        for b in (-math.pi, math.pi):
-            twin = q.copy()
-            twin[-3] += a
-            twin[-2] = -twin[-2]
-            twin[-1] += b
-            if np.all(twin >= lower) and np.all(twin <= upper):
-                out.append(twin)
-    return out
+    twins = (_turned_over(q, a, b) for a in (-math.pi, math.pi) for b in (-math.pi, math.pi))
+    return [q] + [t for t in twins if np.all(t >= lower) and np.all(t <= upper)]
 
 
 def wrist_turns_over(chain: Chain, lower: np.ndarray, upper: np.ndarray) -> bool:
@@ -140,10 +132,17 @@ def wrist_turns_over(chain: Chain, lower: np.ndarray, upper: np.ndarray) -> bool
         return False
     for s in (0.3, 0.7):
         q = lower + s * (upper - lower)
-        twin = q.copy()
-        twin[-3] += math.pi
-        twin[-2] = -twin[-2]
-        twin[-1] += math.pi
+        twin = _turned_over(q, math.pi, math.pi)
         if not np.allclose(chain.frames(q)[0], chain.frames(twin)[0], atol=1e-9):
             return False
     return True
+
+
+def _turned_over(q: np.ndarray, a: float, b: float) -> np.ndarray:
+    """q with the wrist turned over: the third-last joint turned by ``a``, the last by ``b``
+    (radians), the second-last negated."""
+    twin = q.copy()
+    twin[-3] += a
+    twin[-2] = -twin[-2]
+    twin[-1] += b
+    return twin
