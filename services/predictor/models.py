@@ -149,7 +149,7 @@ class BlendPredictor(Predictor):
         super().__init__(**kw)
         self.lag = LagRegression(dt=self.dt, horizon=len(self.leads) - 1,
                                  max_gap_s=self.max_gap_s)
-        self.harmonic = HarmonicModel()
+        self.harmonic = HarmonicModel(half_omega=True, second_xy=True)
         # Short memory: the weights follow which model is better now.
         self.lag_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
         self.harmonic_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
