@@ -55,6 +55,17 @@ def design(tau: np.ndarray, omega: float, second: bool, half: bool = False) -> n
     return np.column_stack(cols)
 
 
+def least_squares(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Coefficients minimising ||A c - y|| (A (n, k), y (n,) or (n, m)) by the normal
+    equations: a few hundred rows of well-scaled columns, and about 3 times faster than the
+    SVD of ``np.linalg.lstsq`` (13 against 36 µs for 120 x 8), which each refit calls
+    dozens of times; the SVD where the columns are degenerate (too few or repeated stamps)."""
+    try:
+        return np.linalg.solve(A.T @ A, A.T @ y)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
 class HarmonicModel:
     """Least-squares harmonic fit over the last ``window_s`` seconds of observations."""
 
@@ -99,10 +110,8 @@ class HarmonicModel:
             self.coef_xy = self.coef_z = None
             return
         tau = ts - t
-        self.coef_xy = np.linalg.lstsq(self._design(tau, self.omega, False), ps[:, :2],
-                                       rcond=None)[0]
-        self.coef_z = np.linalg.lstsq(self._design(tau, self.omega, True), ps[:, 2],
-                                      rcond=None)[0]
+        self.coef_xy = least_squares(self._design(tau, self.omega, False), ps[:, :2])
+        self.coef_z = least_squares(self._design(tau, self.omega, True), ps[:, 2])
 
     def _design(self, tau: np.ndarray, omega: float, z: bool) -> np.ndarray:
         """:func:`design` for the horizontal axes or for z, with this model's terms."""
@@ -113,7 +122,7 @@ class HarmonicModel:
         tau, r = ts - ts[-1], 0.0
         for cols, z in ((ps[:, :2], False), (ps[:, 2], True)):
             A = self._design(tau, w, z)
-            r += float(np.sum((A @ np.linalg.lstsq(A, cols, rcond=None)[0] - cols) ** 2))
+            r += float(np.sum((A @ least_squares(A, cols) - cols) ** 2))
         return r
 
     def _refine(self, ts: np.ndarray, ps: np.ndarray, omega: float) -> float:
