@@ -114,8 +114,7 @@ def flip_last_roll(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.nda
     return out
 
 
-def wrist_twins(chain: Chain, lower: np.ndarray, upper: np.ndarray, q: np.ndarray
-                ) -> list[np.ndarray]:
+def wrist_twins(lower: np.ndarray, upper: np.ndarray, q: np.ndarray) -> list[np.ndarray]:
     """q and the joint values that put the tool exactly where q does by turning the wrist
     over: the third-last and last joints turned by pi either way and the second-last
     negated (a roll-pitch-roll wrist whose axes meet). Only those within limits; none but q

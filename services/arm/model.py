@@ -286,7 +286,7 @@ class ArmModel:
         q = self.check_q(q)
         if not self._wrist_turns_over:
             return [q]
-        return ik.wrist_twins(self._chain, self.lower, self.upper, q)
+        return ik.wrist_twins(self.lower, self.upper, q)
 
     def inverse_position(self, p: np.ndarray, approach: np.ndarray, q_seed: np.ndarray,
                          position_tol: float = 1e-3, angle_tol_deg: float = 2.0,

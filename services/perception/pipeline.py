@@ -290,8 +290,8 @@ class Perception:
         ps = np.array([p for _, p in self.fits])
         frame = float(np.median(self.intervals)) if self.intervals else 0.0
         tau = min(max(stamp_ns * 1e-9 - self.fits[-1][0], 0.0), frame)
-        coef = np.polyfit(ts, ps, len(ts) - 1)
-        return np.array([np.polyval(coef[:, i], tau) for i in range(3)])
+        coef = np.linalg.solve(np.vander(ts), ps)  # exact through them: distinct stamps
+        return np.vander([tau], len(ts))[0] @ coef
 
     def _above_seabed(self, world: np.ndarray) -> np.ndarray:
         if self.seabed is None or not len(world):

@@ -160,9 +160,10 @@ class HarmonicModel:
         out |= {"A_z": float(np.hypot(a, b)), "phi_z": float(np.arctan2(-a, b)),
                 "A_z2": float(np.hypot(a2, b2)), "phi_z2": float(np.arctan2(-a2, b2)),
                 "sway_z": float(c0), "sway_rate_z": float(c1)}
-        for i, axis in enumerate("xy" if self.second_xy else ""):
-            out[f"A_{axis}2"] = float(np.hypot(*self.coef_xy[4:6, i]))
-        for axis, coef in zip("xyz" if self.half_omega else "", (*self.coef_xy.T, self.coef_z),
-                              strict=False):
-            out[f"A_half_{axis}"] = float(np.hypot(*coef[-2:]))
+        if self.second_xy:
+            out |= {f"A_{axis}2": float(np.hypot(*self.coef_xy[4:6, i]))
+                    for i, axis in enumerate("xy")}
+        if self.half_omega:  # the last two columns of every axis
+            out |= {f"A_half_{axis}": float(np.hypot(*coef[-2:]))
+                    for axis, coef in zip("xyz", (*self.coef_xy.T, self.coef_z), strict=True)}
         return out
