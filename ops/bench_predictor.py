@@ -18,8 +18,8 @@ import numpy as np
 
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.perception.evaluate import run_perception
+from wavegrasp.predictor import MODELS
 from wavegrasp.predictor.evaluate import score
-from wavegrasp.predictor.models import MODELS
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.waves import TABLE_I
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from wavegrasp.ops.sample import cached_recording
-from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.waves import TABLE_I
 

@@ -28,7 +28,7 @@ from pathlib import Path
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.ops.viewer import viewer_url
-from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.reader import RecordingError, open_for_replay
 from wavegrasp.runtime.bus import Bus, Delivery

@@ -33,7 +33,7 @@ from wavegrasp.ops.experiment import (
     trial_results,
 )
 from wavegrasp.ops.sample import cached_recording, recording_path
-from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS
+from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.scenario import Scenario
 from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
 

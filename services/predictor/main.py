@@ -16,8 +16,9 @@ import numpy as np
 from pydantic import Field
 
 from wavegrasp.checks import StampOrder
+from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.predictor.forecast import Forecast
-from wavegrasp.predictor.models import DEFAULT_MODEL, MODELS, make_predictor
+from wavegrasp.predictor.models import make_predictor
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings

@@ -13,12 +13,10 @@ from collections import deque
 
 import numpy as np
 
+from wavegrasp.predictor import MODELS
 from wavegrasp.predictor.forecast import ErrorTracker, Forecast, check_position
 from wavegrasp.predictor.harmonic import HarmonicModel
 from wavegrasp.predictor.lagreg import LagRegression
-
-MODELS = ("blend", "harmonic", "linear")
-DEFAULT_MODEL = "blend"
 
 
 class Predictor:

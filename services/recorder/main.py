@@ -25,13 +25,13 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
 from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel, Field, field_validator
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.recorder.rerun_log import RerunLog
 from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.ros_msgs import (
     StaticTransforms,
@@ -61,6 +61,9 @@ from wavegrasp.schemas import (
     model_for_key,
 )
 from wavegrasp.schemas.export import schema_text
+
+if TYPE_CHECKING:
+    from wavegrasp.recorder.rerun_log import RerunLog
 
 log = logging.getLogger("wavegrasp.recorder")
 POINTS_KEY = "trisect/points"
@@ -118,6 +121,10 @@ class Recorder(Service):
         self._skip: dict[str, bool] = {}  # per key: excluded?
         self.rerun: RerunLog | None = None
         if settings.rrd or settings.viewer_url:
+            # rerun takes about half a CPU second to import: not for runs that do not use it
+            # (the experiment's 36 runs).
+            from wavegrasp.recorder.rerun_log import RerunLog
+
             self.arm = ArmModel.load(settings.arm_urdf or None)
             self.rerun = RerunLog(self.path.with_suffix(".rrd") if settings.rrd else None,
                                   self.arm.urdf_path, settings.viewer_url or None)
