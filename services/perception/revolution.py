@@ -189,6 +189,29 @@ def _main_run(count: np.ndarray) -> np.ndarray:
     return keep
 
 
+def _centre_from_face(h: np.ndarray, end: np.ndarray, a: np.ndarray, prior: ShapeFit,
+                      wall: tuple[float, float]) -> float:
+    """Where along the axis ``a`` (unit) the volume centre lies in a view that sees less
+    than the ``prior``'s length: from the one flat end face it sees (a face is a true end;
+    the edge of what is hidden is not) and the learnt distance from that end to the centre.
+
+    h : array, shape (n,), metres, the points' heights along ``a``; end : their
+    :func:`end_faces` labels; wall : the seen wall's lowest and highest heights. Raises
+    ValueError for a view with no face, or both, or a wall reaching past the learnt length.
+    """
+    up = 1.0 if a[2] >= 0 else -1.0  # the learnt offset is along the upward axis
+    seen = [label for label in (1, 2) if (end == label).any()]
+    if len(seen) != 1 or wall[1] - wall[0] > prior.length:
+        raise ValueError(f"the outline is {(wall[1] - wall[0]) * 100:.1f} cm long, the one "
+                         f"learnt {prior.length * 100:.1f} cm (a partial view)")
+    face = float(h[end == seen[0]].mean())
+    top = (seen[0] == 1) == (up > 0)
+    mid = face - up * (prior.offset + (0.5 if top else -0.5) * prior.length)
+    if min(wall) < mid - prior.length / 2 - SLICE_M or max(wall) > mid + prior.length / 2 + SLICE_M:
+        raise ValueError("the outline reaches beyond the learnt one from its end face")
+    return mid
+
+
 def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
                    prior: ShapeFit | None = None) -> ShapeFit:
     """Fit a solid of revolution to points seen from ``viewpoint``; with ``prior``, start from
@@ -201,9 +224,12 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     no_ends = np.zeros(len(p), int)  # every point the wall's: the axis before faces
     m = np.median(p, axis=0)
     d = p - p.mean(axis=0)
-    # Starts: the points' principal directions, and up (a tethered object hangs near it).
+    n = normals(p)
+    # Starts: the points' principal directions, up (a tethered object hangs near it), and
+    # the normals' main direction (a flat end's, where one holds most of the points).
     axes = [prior.axis] if prior is not None else [*np.linalg.eigh(d.T @ d)[1].T,
-                                                    np.array([0.0, 0.0, 1.0])]
+                                                    np.array([0.0, 0.0, 1.0]),
+                                                    np.linalg.eigh(n.T @ n)[1][:, -1]]
     best = None
     for a0 in axes:
         a0 = _unit(np.asarray(a0, dtype=float))
@@ -211,6 +237,14 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
         across = np.ptp(d @ np.cross(a0, v_perp)) / 2
         base = m + 0.75 * across * v_perp
         x, rms = _fit_line(p, no_ends, base, a0)
+        # A flat end facing the camera may hold most of the points (a bottle's base seen
+        # from above): counted as wall, no axis through it fits, so the start's own ends
+        # are tried too.
+        start_ends = end_faces(p, n, base, a0)
+        if start_ends.any():
+            x_e, rms_e = _fit_line(p, start_ends, base, a0)
+            if rms_e < rms:
+                x, rms = x_e, rms_e
         if a0[2] > 0.999:  # up: see UP_TIE
             rms /= UP_TIE
         if best is None or rms < best[0]:
@@ -218,7 +252,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     assert best is not None
     _, x, base, a0 = best
     c, a = _line(x, base, a0, *_frame(a0))
-    end = end_faces(p, normals(p), c, a)
+    end = end_faces(p, n, c, a)
     if end.any():
         c, a = _line(_fit_line(p, end, c, a)[0], c, a, *_frame(a))
     inliers = _inliers(p, end, c, a)  # refit without strays (a tether's points, snow)
@@ -232,22 +266,22 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     z = h.min() + (used + 0.5) * SLICE_M
     z = np.concatenate([[z[0] - SLICE_M / 2], z, [z[-1] + SLICE_M / 2]])
     outline = np.concatenate([[med[used[0]]], med[used], [med[used[-1]]]])
-    _, hc = solid_of_revolution(z, outline)
-    centre = c + (z[0] + hc) * a
+    length = float(z[-1] - z[0])
+    mid = z[0] + solid_of_revolution(z, outline)[1]
+    offset = (z[0] + z[-1]) / 2 - mid
+    if prior is not None and abs(length - prior.length) > max(SLICE_M * 2, 0.1 * prior.length):
+        mid = _centre_from_face(h, end[inliers], a, prior, (z[0], z[-1]))
+        length, offset = prior.length, prior.offset * (1.0 if a[2] >= 0 else -1.0)
+    centre = c + mid * a
     if np.linalg.norm(centre - m) > np.ptp(p, axis=0).max():
         raise ValueError("the outline's centre falls outside the object (no solid of "
                          "revolution fits)")
     rms = float(np.sqrt(np.mean(r**2)))
-    if prior is not None and abs(z[-1] - z[0] - prior.length) > max(SLICE_M * 2,
-                                                                    0.1 * prior.length):
-        raise ValueError(f"the outline is {(z[-1] - z[0]) * 100:.1f} cm long, the one learnt "
-                         f"{prior.length * 100:.1f} cm (a partial view)")
     if prior is not None and prior.far_off(rms, 1.5):
         raise ValueError(f"the outline is {rms * 1e3:.2f} mm off the points, the one learnt "
                          f"{prior.rms * 1e3:.2f} mm (a partial view)")
     # Across the axis as a wall fit's; along it, the outline's ends (a slice each).
     sigma = float(np.hypot(rms / np.sqrt(max(inliers.sum(), 1)) * 4, SLICE_M / 4))
-    offset = (z[0] + z[-1]) / 2 - (z[0] + hc)
     a, offset = (a, offset) if a[2] >= 0 else (-a, -offset)
-    return ShapeFit("revolution", centre, a, float(outline.max()), float(z[-1] - z[0]), rms,
+    return ShapeFit("revolution", centre, a, float(outline.max()), length, rms,
                     inliers, sigma, offset=float(offset))
