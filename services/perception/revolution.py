@@ -189,6 +189,12 @@ def _main_run(count: np.ndarray) -> np.ndarray:
     return keep
 
 
+def _length_slack(length: float) -> float:
+    """How far, metres, an outline seen may differ from one ``length`` metres long and be
+    the same."""
+    return max(2 * SLICE_M, 0.1 * length)
+
+
 def _centre_from_face(h: np.ndarray, end: np.ndarray, a: np.ndarray, prior: ShapeFit,
                       wall: tuple[float, float]) -> float:
     """Where along the axis ``a`` (unit) the volume centre lies in a view that sees less
@@ -207,7 +213,9 @@ def _centre_from_face(h: np.ndarray, end: np.ndarray, a: np.ndarray, prior: Shap
     face = float(h[end == seen[0]].mean())
     top = (seen[0] == 1) == (up > 0)
     mid = face - up * (prior.offset + (0.5 if top else -0.5) * prior.length)
-    if min(wall) < mid - prior.length / 2 - SLICE_M or max(wall) > mid + prior.length / 2 + SLICE_M:
+    ends = sorted(mid + up * (prior.offset + k * prior.length / 2) for k in (-1.0, 1.0))
+    slack = _length_slack(prior.length)
+    if wall[0] < ends[0] - slack or wall[1] > ends[1] + slack:
         raise ValueError("the outline reaches beyond the learnt one from its end face")
     return mid
 
@@ -269,7 +277,7 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     length = float(z[-1] - z[0])
     mid = z[0] + solid_of_revolution(z, outline)[1]
     offset = (z[0] + z[-1]) / 2 - mid
-    if prior is not None and abs(length - prior.length) > max(SLICE_M * 2, 0.1 * prior.length):
+    if prior is not None and abs(length - prior.length) > _length_slack(prior.length):
         mid = _centre_from_face(h, end[inliers], a, prior, (z[0], z[-1]))
         length, offset = prior.length, prior.offset * (1.0 if a[2] >= 0 else -1.0)
     centre = c + mid * a
