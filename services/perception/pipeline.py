@@ -343,15 +343,20 @@ def consistent_with(fit: ShapeFit, fits: list[ShapeFit], tolerance: float = 0.1)
         return True
     for size in ("radius", "length"):
         median = float(np.median([getattr(f, size) for f in fits]))
-        off = getattr(fit, size) - median
+        value = getattr(fit, size)
         # A solid of revolution seen longer is seen more whole, not another shape: a bottle
         # hanging neck down, seen from above in its first frames, shows its base and body
         # only, and its neck when it swings (random-101-011: 7.6 cm, then 15.6).
-        if size == "length" and fit.shape == "revolution" and off > 0:
+        if size == "length" and fit.shape == "revolution" and value > median:
             continue
-        if abs(off) > max(0.01, tolerance * median):
+        if not same_size(value, median, tolerance):
             return False
     return True
+
+
+def same_size(size: float, reference: float, tolerance: float = 0.1) -> bool:
+    """Whether ``size`` (metres) is ``reference``'s, within ``tolerance`` of it or 1 cm."""
+    return abs(size - reference) <= max(0.01, tolerance * reference)
 
 
 def learnt_shape(fits: list[ShapeFit]) -> ShapeFit:
@@ -381,7 +386,7 @@ def learnt_revolution(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
     length: with them a view that sees only one end's flat face still places the centre
     (:func:`~wavegrasp.perception.revolution.fit_revolution`)."""
     length = _upper([f.length for f in fits])
-    whole = [f for f in fits if abs(f.length - length) <= max(0.01, 0.1 * length)]
+    whole = [f for f in fits if same_size(f.length, length)]
     offset = float(np.median([f.offset for f in whole])) if whole else best.offset
     return replace(best, length=length, offset=offset)
 
