@@ -73,6 +73,9 @@ class PlannerConfig(BaseModel):
                                 "and the direction from the shoulder to the object")
     offset_tries: int = Field(4, description="directions n of P_init tried per grasp pose: "
                               "the paper's first, then turned about the final move")
+    stage_tries: int = Field(4, description="starts of the move to P_init tried, spread "
+                             "over the time the grasp leaves, before a collision on the way "
+                             "refuses the candidate")
     max_joint_step_rad: float = Field(1.0, description="the most a joint may turn between "
                                       "neighbouring waypoints of the approach")
     standby_tolerance_rad: float = Field(0.3, description="an idle arm this near its standby "
@@ -350,16 +353,31 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     d_path = approach.duration
     if t_start + pre.duration + d_path > t_g:
         return "cannot be timed", pre.duration + d_path
-    t_pre, q_pre, v_pre = sample_segment(pre, t_start, cfg.sample_dt_s)
     t_app, q_app, v_app = sample_path(approach, t_g - d_path, cfg.sample_dt_s)
     t_app[-1] = t_g
-    t_hold = np.arange(t_pre[-1] + cfg.sample_dt_s, t_app[0], cfg.sample_dt_s)
-    times = np.concatenate([t_pre, t_hold, t_app])
-    q = np.vstack([q_pre, np.tile(qs[0], (len(t_hold), 1)), q_app])
-    qd = np.vstack([v_pre, np.zeros((len(t_hold), 6)), v_app])
     final_from = t_g - d_path + approach.spline.x[-2 - final_points(final_m, final_step_m)]
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, final_from):
+    slack = t_g - d_path - t_start - pre.duration
+    # The move to P_init goes straight in joint space and often sweeps the hand through the
+    # object's swing (most collisions of random-103-003): where the grasp leaves time to
+    # wait, the arm waits at its standby instead and passes once the object is elsewhere.
+    # The approach, the same whatever the start, is checked once.
+    if collides(arm, T_world_base, t_app, q_app, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
+    for delay in stage_delays(slack, path.period_s, cfg.stage_tries):
+        t_pre, q_pre, v_pre = sample_segment(pre, t_start + delay, cfg.sample_dt_s)
+        t_wait = np.arange(t_start, t_pre[0] - 1e-9, cfg.sample_dt_s)
+        t_hold = np.arange(t_pre[-1] + cfg.sample_dt_s, t_app[0] - 1e-9, cfg.sample_dt_s)
+        t_before = np.concatenate([t_wait, t_pre, t_hold])
+        q_before = np.vstack([np.tile(q_now, (len(t_wait), 1)), q_pre,
+                              np.tile(qs[0], (len(t_hold), 1))])
+        if not collides(arm, T_world_base, t_before, q_before, path, body, cfg.clearance_m,
+                        final_from):
+            break
+    else:
+        return "collision", 0.0
+    times = np.concatenate([t_before, t_app])
+    q = np.vstack([q_before, q_app])
+    qd = np.vstack([np.zeros((len(t_wait), 6)), v_pre, np.zeros((len(t_hold), 6)), v_app])
     tool = (T_world_base @ arm.forward_batch(q))[:, :3, 3]
     sigma = float(np.interp(t_g, path.times_s, path.sigma))
     speed = float(np.linalg.norm(path.velocity(t_g)))
@@ -383,6 +401,18 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     t_close = t_g - (preshape - width) / arm.jaw_closing_mps
     return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence, final_from,
                 preshape, t_close)
+
+
+def stage_delays(slack_s: float, period_s: float, tries: int) -> np.ndarray:
+    """When to start the move to P_init, seconds after the plan's start: at once, then up to
+    ``tries`` - 1 later starts spread over the ``slack_s`` the grasp time leaves, within one
+    ``period_s`` of the swing (a period later the object is where it was)."""
+    if tries < 2:
+        return np.zeros(1)
+    span = min(max(slack_s, 0.0), period_s * (tries - 1) / tries)
+    if span < 0.05:
+        return np.zeros(1)
+    return np.linspace(0.0, span, tries)
 
 
 def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
