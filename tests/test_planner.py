@@ -911,3 +911,53 @@ def test_the_move_to_p_init_waits_until_the_object_is_out_of_its_way(arm: ArmMod
                             plan.t_final)
         waited += bool(np.allclose(plan.q[: int(0.1 / cfg.sample_dt_s)], q_standby))
     assert waited >= 3
+
+
+def test_an_idle_arm_with_one_standby_that_plans_nothing_searches_for_others(
+        router: Router, arm: ArmModel) -> None:
+    """Where every trial grasp solves from facing the object, the standby poses were facing
+    alone, and an arm from which nothing planned had nowhere else to go: a 13 cm sphere 0.76
+    m out, the mount 0.49 m below it, planned from facing in 49 % of predictions and from
+    four ready poses in all (random-103-005, offline). Searched for, the others come after
+    facing; and an arm with one pose from which nothing planned for a period searches them
+    and moves to one that plans."""
+    rest = np.array([0.0, 0.0, 0.533])
+    pos, quat = arm_mount(paper_scenario(2, "buoy", mount=MountSpec(
+        position=(-0.3862, 0.5211, 0.0412), yaw_offset_deg=-23.83)))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), pos
+    seen = swinging(rest, (0.05, 0.002, 0.002), 1.506, 40)(0.0).positions
+    facing = standby_poses(arm, T, seen, Body(0.065))
+    every = standby_poses(arm, T, seen, Body(0.065), search_all=True)
+    assert len(facing) == 1 and len(every) >= 4
+    np.testing.assert_allclose(every[0], facing[0])
+    assert all(clearance(arm, T, q, seen, Body(0.065)) > 0.01 for q in every)
+
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        rest = np.array([0.0, 0.0, 0.68])
+        T = mounted(rest, 0.548, -178.5, -0.379, 18.0)  # random-7-034, as above
+        path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
+        service.tf.update([("world", arm.base_link, T)])
+        for k, p in enumerate(np.vstack([path(0.0).positions, path(4.0).positions])):
+            service.see(p, k * 100_000_000)
+        service.body = Body(0.066)
+        poses = standby_poses(arm, T, np.array(service.seen), service.body)
+        bad = next(q for q in poses if not any(
+            isinstance(plan_grasp(path(now), now, arm, T, q, service.body, PlannerConfig()),
+                       Plan) for now in 10.0 + np.arange(3) * 1.82 / 3))
+        service.standby(T, 0)
+        service._standby = (*service._standby[:3], [bad])  # one pose, from which none plans
+        service.q_now = bad.copy()
+        now = 10.0
+        while not service.counters["standby moves"] and now < 10.0 + 4 * 1.82:
+            service.plan(*delivered(path(now), now))
+            now += 0.25
+        assert service.counters["standby moves"] == 1, told(service)
+        assert now - 0.25 >= 10.0 + 1.82  # not before a whole period without a plan
+        assert len(service._standby[3]) == len(poses)
+        target = service.standby(T, int(now * 1e9))
+        assert isinstance(plan_grasp(path(now), now, arm, T, target, service.body,
+                                     PlannerConfig()), Plan)
+    finally:
+        service.bus.close()

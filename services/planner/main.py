@@ -124,6 +124,9 @@ class PlannerService(Service):
         self._choice = 0  # which of the standby poses the arm waits in
         self._probe = 0  # the next of them to plan from while none comes from the chosen one
         self._failing_since_ns: int | None = None  # no plan from the idle arm since
+        #: Search every standby pose, even where facing the object solves every grasp: set
+        #: once nothing planned from facing for a period (:meth:`probe_standby`).
+        self._search_all = False
         #: Where it has been lately (a few seconds of centroids, metres, world).
         self.seen: deque[np.ndarray] = deque(maxlen=100)
         self._seen_ns: deque[int] = deque(maxlen=100)  # their stamps
@@ -368,7 +371,8 @@ class PlannerService(Service):
                 and np.abs(sway - cached[2]).max() > self.cfg.standby_moved_m):
             probed = cached[3][self._choice] if cached and cached[1] == key and self._choice \
                 else None
-            poses = standby_poses(self.arm, T_world_base, seen, self.body)
+            poses = standby_poses(self.arm, T_world_base, seen, self.body,
+                                  search_all=self._search_all)
             self._standby = cached = (stamp_ns, key, sway, poses or [self.arm.q_home.copy()])
             self._choice, self._probe, self._failing_since_ns = 0, 0, None
             if probed is not None:
@@ -398,8 +402,14 @@ class PlannerService(Service):
         now_ns = msg.header.stamp_ns
         if self._failing_since_ns is None or now_ns < self._failing_since_ns:
             self._failing_since_ns = now_ns
-        poses = self._standby[3] if self._standby is not None else []
-        if len(poses) < 2 or now_ns - self._failing_since_ns < path.period_s * 1e9:
+        if self._standby is None or now_ns - self._failing_since_ns < path.period_s * 1e9:
+            return None
+        if len(self._standby[3]) < 2 and not self._search_all:  # facing alone: search
+            self._search_all, self._standby, failing = True, None, self._failing_since_ns
+            self.standby(T_world_base, now_ns)
+            self._failing_since_ns = failing
+        poses = self._standby[3]
+        if len(poses) < 2:
             return None
         self._probe = self._probe % len(poses)
         if self._probe == self._choice:
