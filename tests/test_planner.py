@@ -771,27 +771,11 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
     object)."""
     service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
     try:
-        rest = np.array([0.0, 0.0, 0.68])
-        T = mounted(rest, 0.548, -178.5, -0.379, 18.0)
-        path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
-        service.tf.update([("world", arm.base_link, T)])
-        for k, p in enumerate(np.vstack([path(0.0).positions, path(4.0).positions])):
-            service.see(p, k * 100_000_000)
-        service.body = Body(0.066)
-        poses = standby_poses(arm, T, np.array(service.seen), service.body)
-        planned = [sum(isinstance(plan_grasp(path(now), now, arm, T, q, service.body,
-                                             PlannerConfig()), Plan)
-                       for now in 10.0 + np.arange(3) * 1.82 / 3) for q in poses]
+        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
         bad = poses[planned.index(0)]
         good = poses[planned.index(3)]  # of its mirror image, turned 3 rad through the object
-        service.standby(T, 0)
         others = [q for q in poses if q is not bad and q is not good]
-        service._standby = (*service._standby[:3], [bad, good, *others])
-        service.q_now = bad.copy()
-        now = 10.0
-        while not service.counters["standby changed"] and now < 10.0 + 4 * 1.82:
-            service.plan(*delivered(path(now), now))
-            now += 0.25
+        now = waited_in(service, T, [bad, good, *others], path, "standby changed")
         assert service.counters["plans"] == 0, told(service)
         assert service.counters["standby changed"] == 1, told(service)
         assert service.counters["standby probes"] <= service.counters["no plan"]
@@ -813,6 +797,41 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
         np.testing.assert_allclose(q, service._standby[3][int(np.argmin(near))])
     finally:
         service.bus.close()
+
+
+def sphere_by_the_shoulder(service: PlannerService, arm: ArmModel):  # noqa: ANN201
+    """random-7-034 given to ``service``: a 13 cm sphere swinging 23 cm, 0.55 m from the
+    shoulder and 0.38 m above it, seen for a while. Returns T_world_base, the swing (a
+    function of the planning time), its standby poses and how many of three phases plan
+    from each."""
+    rest = np.array([0.0, 0.0, 0.68])
+    T = mounted(rest, 0.548, -178.5, -0.379, 18.0)
+    path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
+    service.tf.update([("world", arm.base_link, T)])
+    for k, p in enumerate(np.vstack([path(0.0).positions, path(4.0).positions])):
+        service.see(p, k * 100_000_000)
+    service.body = Body(0.066)
+    poses = standby_poses(arm, T, np.array(service.seen), service.body)
+    planned = [sum(isinstance(plan_grasp(path(now), now, arm, T, q, service.body,
+                                         PlannerConfig()), Plan)
+                   for now in 10.0 + np.arange(3) * 1.82 / 3) for q in poses]
+    return T, path, poses, planned
+
+
+def waited_in(service: PlannerService, T: np.ndarray, poses: list[np.ndarray],
+              path, until: str) -> float:  # noqa: ANN001 (a function of the planning time)
+    """Give ``service`` the standby ``poses`` (the arm waiting in the first) and a
+    prediction of ``path`` every 0.25 s from 10 s until its counter ``until`` counts or four
+    of :func:`sphere_by_the_shoulder`'s periods have gone by: returns the time after the
+    last prediction, seconds."""
+    service.standby(T, 0)
+    service._standby = (*service._standby[:3], poses)
+    service.q_now = poses[0].copy()
+    now = 10.0
+    while not service.counters[until] and now < 10.0 + 4 * 1.82:
+        service.plan(*delivered(path(now), now))
+        now += 0.25
+    return now
 
 
 def told(service: PlannerService) -> dict[str, int]:
@@ -935,24 +954,9 @@ def test_an_idle_arm_with_one_standby_that_plans_nothing_searches_for_others(
 
     service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
     try:
-        rest = np.array([0.0, 0.0, 0.68])
-        T = mounted(rest, 0.548, -178.5, -0.379, 18.0)  # random-7-034, as above
-        path = swinging(rest, (0.23, 0.02, 0.03), 1.82, 40)
-        service.tf.update([("world", arm.base_link, T)])
-        for k, p in enumerate(np.vstack([path(0.0).positions, path(4.0).positions])):
-            service.see(p, k * 100_000_000)
-        service.body = Body(0.066)
-        poses = standby_poses(arm, T, np.array(service.seen), service.body)
-        bad = next(q for q in poses if not any(
-            isinstance(plan_grasp(path(now), now, arm, T, q, service.body, PlannerConfig()),
-                       Plan) for now in 10.0 + np.arange(3) * 1.82 / 3))
-        service.standby(T, 0)
-        service._standby = (*service._standby[:3], [bad])  # one pose, from which none plans
-        service.q_now = bad.copy()
-        now = 10.0
-        while not service.counters["standby moves"] and now < 10.0 + 4 * 1.82:
-            service.plan(*delivered(path(now), now))
-            now += 0.25
+        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
+        bad = poses[planned.index(0)]
+        now = waited_in(service, T, [bad], path, "standby moves")  # none plans from it
         assert service.counters["standby moves"] == 1, told(service)
         assert now - 0.25 >= 10.0 + 1.82  # not before a whole period without a plan
         assert len(service._standby[3]) == len(poses)
