@@ -138,6 +138,15 @@ class PredictionSample(Message):
     sigma: float = Field(ge=0.0, description="1-sigma position error expected at t_ns, metres")
 
 
+def check_increasing(samples: list, field: str) -> list:
+    """``samples`` (each with a ``t_ns``) if their times strictly increase; else ValueError
+    naming the ``field`` and the first sample out of order."""
+    for k in range(1, len(samples)):
+        if samples[k].t_ns <= samples[k - 1].t_ns:
+            raise ValueError(f"{field} not strictly increasing in t_ns at sample {k}")
+    return samples
+
+
 class MotionPrediction(Message):
     """``wavegrasp/predictor/prediction``: samples from now to at least one period ahead."""
 
@@ -151,10 +160,7 @@ class MotionPrediction(Message):
     @field_validator("samples")
     @classmethod
     def check_sample_times(cls, samples: list[PredictionSample]) -> list[PredictionSample]:
-        for k in range(1, len(samples)):
-            if samples[k].t_ns <= samples[k - 1].t_ns:
-                raise ValueError(f"samples not strictly increasing in t_ns at sample {k}")
-        return samples
+        return check_increasing(samples, "samples")
 
 
 class JointSample(Message):
@@ -197,6 +203,11 @@ class GraspPlan(Message):
         default_factory=list, description="joint positions, in joint_names' order, the arm "
         "returns to after the attempt: its home pose turned to face the object; empty: its "
         "home pose")
+
+    @field_validator("joint_trajectory")
+    @classmethod
+    def check_trajectory_times(cls, samples: list[JointSample]) -> list[JointSample]:
+        return check_increasing(samples, "joint_trajectory")
 
 
 class ArmStandby(Message):

@@ -928,6 +928,9 @@ def test_the_move_to_p_init_waits_until_the_object_is_out_of_its_way(arm: ArmMod
         assert isinstance(plan, Plan), plan
         assert not collides(arm, T, plan.times, plan.q, path(now), box, cfg.clearance_m,
                             plan.t_final)
+        # Samples an arm takes in nanoseconds: none at the same time (a move to P_init
+        # started as late as the grasp allows ended on the approach's first sample).
+        assert np.diff(np.rint(plan.times * 1e9)).min() > 0
         waited += bool(np.allclose(plan.q[: int(0.1 / cfg.sample_dt_s)], q_standby))
     assert waited >= 3
 

@@ -76,3 +76,21 @@ def test_keys_map_to_models() -> None:
     assert model_for_key("wavegrasp/gate/stats") is ServiceStats
     assert model_for_key("wavegrasp/gate/ack") is FrameAck
     assert model_for_key("trisect/points") is None
+
+
+def test_a_plan_whose_samples_do_not_move_on_in_time_is_refused() -> None:
+    """Two samples of an arm's trajectory at one time cannot be followed: refused where the
+    plan is made or read, naming the field and the sample."""
+    from wavegrasp.schemas import GraspPlan, Pose, Quaternion
+
+    def plan(times: list[int]) -> GraspPlan:
+        return GraspPlan(header=Header(), plan_id="p", t_start_ns=1, t_grasp_ns=9,
+                         grasp=Pose(position=Vec3(x=0, y=0, z=0),
+                                    orientation=Quaternion(x=0, y=0, z=0, w=1)),
+                         approach=Vec3(x=0, y=0, z=-1), joint_names=["a"],
+                         joint_trajectory=[{"t_ns": t, "positions": [0.0]} for t in times])
+
+    assert len(plan([1, 2, 3]).joint_trajectory) == 3
+    with pytest.raises(ValueError, match="joint_trajectory not strictly increasing in t_ns "
+                                         "at sample 2"):
+        plan([1, 2, 2])

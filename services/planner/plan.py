@@ -363,10 +363,15 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     # The approach, the same whatever the start, is checked once.
     if collides(arm, T_world_base, t_app, q_app, path, body, cfg.clearance_m, final_from):
         return "collision", 0.0
+    dt = cfg.sample_dt_s
     for delay in stage_delays(slack, path.period_s, cfg.stage_tries):
-        t_pre, q_pre, v_pre = sample_segment(pre, t_start + delay, cfg.sample_dt_s)
-        t_wait = np.arange(t_start, t_pre[0] - 1e-9, cfg.sample_dt_s)
-        t_hold = np.arange(t_pre[-1] + cfg.sample_dt_s, t_app[0] - 1e-9, cfg.sample_dt_s)
+        t_pre, q_pre, v_pre = sample_segment(pre, t_start + delay, dt)
+        t_wait = np.arange(t_start, t_pre[0] - dt / 2, dt)
+        if t_pre[-1] > t_app[0] - dt / 2:  # it ends at rest at P_init as the approach starts
+            t_pre, q_pre, v_pre = t_pre[:-1], q_pre[:-1], v_pre[:-1]
+            t_hold = np.zeros(0)
+        else:
+            t_hold = np.arange(t_pre[-1] + dt, t_app[0] - dt / 2, dt)
         t_before = np.concatenate([t_wait, t_pre, t_hold])
         q_before = np.vstack([np.tile(q_now, (len(t_wait), 1)), q_pre,
                               np.tile(qs[0], (len(t_hold), 1))])

@@ -84,9 +84,6 @@ class Attempt:
                 if n != len(joint_names) and (n or name == "positions"):
                     raise ValueError(f"plan {plan.plan_id}: joint_trajectory sample {k} has {n} "
                                      f"{name}, the arm {len(joint_names)} joints")
-            if k and sample.t_ns <= s[k - 1].t_ns:
-                raise ValueError(f"plan {plan.plan_id}: joint_trajectory t_ns not strictly "
-                                 f"increasing at sample {k}")
         if plan.standby and len(plan.standby) != len(joint_names):
             raise ValueError(f"plan {plan.plan_id}: standby has {len(plan.standby)} positions, "
                              f"the arm {len(joint_names)} joints")
