@@ -24,6 +24,9 @@ END_MARGIN = 0.005  # metres: the wall refit leaves out points this close to an 
 #: ratio of such is no sign of a wrong axis or a partial view)
 RMS_FLOOR_M = 0.001
 GAP = 15.0  # mean point spacings (and >= 5 mm): a wider gap along the axis splits off strays
+#: metres: points spread less than this across their length (standard deviation) are a line,
+#: not a surface: the tether's 1.6 mm, a 4.8 cm bottle neck's 7-8 mm
+LINE_WIDTH_M = 0.004
 
 Model = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -104,6 +107,13 @@ def check_sizes(**sizes: float | None) -> None:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
+
+
+def line_width(q: np.ndarray) -> float:
+    """How far points ``q`` (shape (n, 3), metres) spread across their longest direction:
+    the standard deviation along their second principal direction, metres."""
+    d = q - q.mean(axis=0)
+    return float(np.sqrt(max(np.linalg.eigvalsh(d.T @ d / len(q))[1], 0.0)))
 
 
 def noise_threshold(r: np.ndarray) -> float:

@@ -20,7 +20,13 @@ import open3d as o3d
 from pydantic import BaseModel, Field
 from scipy.spatial import cKDTree
 
-from wavegrasp.perception.fit import ShapeFit, check_points, segment_plane
+from wavegrasp.perception.fit import (
+    LINE_WIDTH_M,
+    ShapeFit,
+    check_points,
+    line_width,
+    segment_plane,
+)
 from wavegrasp.perception.shape import fit_shape
 
 
@@ -36,9 +42,9 @@ class PerceptionConfig(BaseModel):
     join_m: float = Field(0.05, description="clusters this close to the object's are part of "
                           "it: a bottle's shoulder facing away from the camera leaves its "
                           "neck apart")
-    join_min_width_m: float = Field(0.004, description="unless they are lines: their spread "
-                                    "across their length (standard deviation) is less (the "
-                                    "tether's 1.6 mm, a 4.8 cm neck's 7-8 mm)")
+    join_min_width_m: float = Field(LINE_WIDTH_M, description="unless they are lines: their "
+                                    "spread across their length (standard deviation) is less "
+                                    "(the tether's 1.6 mm, a 4.8 cm neck's 7-8 mm)")
     object_size_m: tuple[float, float] = (0.03, 0.40)
     min_object_points: int = 30
     gate_m: float = Field(0.10, description="search radius beyond the object's own size")
@@ -123,15 +129,8 @@ def joined(part: np.ndarray, parts: list[np.ndarray], gap_m: float, min_width_m:
     stretched a bottle's outline from 17.6 to 21-26 cm (random-61-017)."""
     tree = cKDTree(part)
     near = [q for q in parts if q is not part and tree.query(q)[0].min() <= gap_m
-            and _width(q) >= min_width_m]
+            and line_width(q) >= min_width_m]
     return np.vstack([part, *near]) if near else part
-
-
-def _width(q: np.ndarray) -> float:
-    """How far points ``q`` (shape (n, 3), metres) spread across their longest direction:
-    the standard deviation along their second principal direction."""
-    d = q - q.mean(axis=0)
-    return float(np.sqrt(max(np.linalg.eigvalsh(d.T @ d / len(q))[1], 0.0)))
 
 
 class Perception:
