@@ -295,6 +295,32 @@ def test_a_box_whose_faces_match_the_learnt_axes_wrongly_is_refused_not_reported
             fit_box(p1 + rng.normal(0, 0.0007, (len(p1), 1)) * n1, eye, swapped)
 
 
+@pytest.mark.parametrize("roll_deg", [20.0, 35.0, 60.0, -75.0])
+def test_a_box_seen_on_one_face_is_placed_however_it_turned_about_that_face(
+        roll_deg: float) -> None:
+    """An 11.5 x 19.9 x 9.7 cm box learnt from a view of three faces, then seen face-on
+    after it turned about that face's normal. Its sides were the learnt axes projected on the
+    face: a 9.7 cm side turned 20 degrees is seen 15.9 cm long, and the frame was refused
+    (random-109-024: observed in 46 % of frames). The sides now come from the face's
+    outline, matched to the learnt sizes."""
+    rng = np.random.default_rng(1)
+    size, centre = np.array([0.115, 0.199, 0.097]), np.array([0.0, 0.0, 0.4])
+    oblique = centre + np.array([-0.7, -0.5, 0.5])
+    p0, n0 = box_faces(rng, size, 0.0, centre, oblique, spacing=0.004)
+    prior = fit_box(p0 + rng.normal(0, 0.0007, (len(p0), 1)) * n0, oblique)
+    eye = centre + np.array([-1.0, 0.0, 0.0])
+    p1, n1 = box_faces(rng, size, 0.0, centre, eye, spacing=0.004)
+    roll = np.radians(roll_deg)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(roll), -np.sin(roll)],
+                  [0.0, np.sin(roll), np.cos(roll)]])
+    p1 = (p1 - centre) @ R.T + centre + rng.normal(0, 0.0007, (len(p1), 1)) * n1
+    fit = fit_box(p1, eye, prior)
+    assert np.linalg.norm(fit.centre - centre) < 0.003
+    assert fit.frame is not None and prior.frame is not None
+    turned = R @ prior.frame  # the learnt axes, turned with the box
+    assert np.all(np.abs(np.einsum("ij,ij->j", fit.frame, turned)) > np.cos(np.radians(3)))
+
+
 def test_a_flat_end_is_told_from_a_curved_cap() -> None:
     """A revolution's end is a face only if it is flat: a 10 cm cylinder's top (its normals
     along the axis, within the sensor's noise of one plane) is, a sphere's or a flat
