@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from wavegrasp.perception.fit import (
     LINE_WIDTH_M,
@@ -113,7 +113,10 @@ def _rectangle_side(q: np.ndarray, normal: np.ndarray) -> np.ndarray:
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
     xy = np.column_stack([q @ u, q @ v])
-    hull = xy[ConvexHull(xy).vertices]
+    try:
+        hull = xy[ConvexHull(xy).vertices]
+    except QhullError:  # the points on a line: that line is a side
+        return np.linalg.eigh(np.cov((q - q.mean(axis=0)).T))[1][:, -1]
     edge = np.diff(np.vstack([hull, hull[:1]]), axis=0)
     angle = np.arctan2(edge[:, 1], edge[:, 0])
     c, s = np.cos(angle), np.sin(angle)
