@@ -935,6 +935,33 @@ def test_the_move_to_p_init_waits_until_the_object_is_out_of_its_way(arm: ArmMod
     assert waited >= 3
 
 
+def test_the_idle_arm_moves_to_a_standby_it_plans_from_not_the_first_guessed(
+        router: Router, arm: ArmModel) -> None:
+    """The standby poses are ranked from the grasps' joints alone, and the first may plan
+    nothing: random-113-034's arm turned 2.9 rad in 2.9 s to it, then waited there 2.2 s
+    (43 warm predictions, none planned) before the probes found the second, which planned
+    every one. Before the arm moves, a grasp is planned from the pose it would wait in, one
+    pose per prediction, and it goes to the first that plans."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
+        bad = poses[planned.index(0)]
+        good = poses[planned.index(3)]
+        others = [q for q in poses if q is not bad and q is not good]
+        service.standby(T, 0)
+        service._standby = (*service._standby[:3], [bad, good, *others])
+        now = 10.0
+        while not service.counters["standby moves"] and now < 10.0 + 1.82:
+            service.plan(*delivered(path(now), now))
+            now += 0.25
+        assert service.counters["standby moves"] == 1, told(service)
+        assert service.counters["standby tests"] == 2, told(service)
+        assert now - 0.25 < 10.0 + 1.82 / 2  # not a period waited in the first
+        np.testing.assert_allclose(service.standby(T, int(now * 1e9)), good)
+    finally:
+        service.bus.close()
+
+
 def test_an_idle_arm_with_one_standby_that_plans_nothing_searches_for_others(
         router: Router, arm: ArmModel) -> None:
     """Where every trial grasp solves from facing the object, the standby poses were facing
