@@ -421,11 +421,8 @@ class PlannerService(Service):
         j = self._probe
         self._probe += 1
         self.counters["standby probes"] += 1
-        result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, poses[j],
-                            self.turning(path.period_s), self.config)
-        if not isinstance(result, Plan):
+        if not self.plans_from(poses[j], path, now_ns, T_world_base):
             return None
-        self._hint = Hint.of(result, path)
         move = standby_move(self.arm, T_world_base, self.q_now, poses[j], path, now_ns * 1e-9,
                             self.body, self.config, via=self.other_standbys(j), swept=swept)
         if isinstance(move, str):  # tried again when its turn comes round
@@ -434,6 +431,16 @@ class PlannerService(Service):
         self.counters["standby changed"] += 1
         self._choice, self._accepted, self._failing_since_ns = j, j, None
         return move
+
+    def plans_from(self, q: np.ndarray, path: PredictedPath, now_ns: int,
+                   T_world_base: np.ndarray) -> bool:
+        """Does a grasp plan from the arm at ``q`` (radians, shape (n,)) on ``path``? If so,
+        it is the grasp tried first on the next prediction."""
+        result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, q,
+                            self.turning(path.period_s), self.config)
+        if isinstance(result, Plan):
+            self._hint = Hint.of(result, path)
+        return isinstance(result, Plan)
 
     def standby_plans(self, path: PredictedPath, now_ns: int, T_world_base: np.ndarray
                       ) -> bool:
@@ -448,10 +455,8 @@ class PlannerService(Service):
             return True
         poses = self._standby[3]
         self.counters["standby tests"] += 1
-        result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, poses[self._choice],
-                            self.turning(path.period_s), self.config)
-        if isinstance(result, Plan):
-            self._accepted, self._hint = self._choice, Hint.of(result, path)
+        if self.plans_from(poses[self._choice], path, now_ns, T_world_base):
+            self._accepted = self._choice
             return True
         self._tried.add(self._choice)
         untried = [j for j in range(len(poses)) if j not in self._tried]
