@@ -460,10 +460,11 @@ class PlannerService(Service):
             return True
         self._tried.add(self._choice)
         untried = [j for j in range(len(poses)) if j not in self._tried]
-        self._choice = untried[0] if untried else 0
-        if not untried:
-            self._accepted = 0
-        return not untried
+        if untried:
+            self._choice = untried[0]
+            return False
+        self._choice = self._accepted = 0
+        return True
 
     def ask_standby(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                     T_world_base: np.ndarray) -> None:
