@@ -197,6 +197,27 @@ def test_a_view_as_near_its_points_as_a_fine_clouds_learnt_outline_is_not_refuse
             assert np.linalg.norm(fit.centre - centre) < 0.004
 
 
+def test_a_solid_of_revolution_seen_longer_than_it_was_learnt_is_not_refused() -> None:
+    """random-127-001: an ellipsoid 10.4 cm across and 9.2 cm along its axis was seen 7.6 cm
+    long in every learning frame, then 8.4-8.8 cm as it swung; those views were refused as
+    partial ones (the outline longer than the learnt one from its end face), and the object
+    was observed in 9 % of frames. A view longer than the learning's sees more of it."""
+    rng = np.random.default_rng(7)
+    radius, half_length = 0.052, 0.046
+
+    def lower_end_hidden():
+        points, viewpoint, centre = ellipsoid_cloud(rng, radius, half_length)
+        return points[points[:, 2] > centre[2] - 0.4 * half_length], viewpoint
+
+    learnt = learnt_shape([fit_revolution(*lower_end_hidden()) for _ in range(9)])
+    assert learnt.length < 2 * half_length - 0.015  # learnt short, as in the recording
+    for _ in range(10):
+        points, viewpoint, centre = ellipsoid_cloud(rng, radius, half_length)
+        fit = fit_revolution(points, viewpoint, learnt)  # raised "(a partial view)"
+        assert fit.length > learnt.length
+        assert np.linalg.norm(fit.centre - centre) < 0.004, fit.centre - centre
+
+
 def test_check_points_names_the_problem() -> None:
     good = np.zeros((30, 3))
     assert check_points(good).shape == (30, 3)

@@ -34,6 +34,7 @@ NORMAL_NEIGHBOURS = 10  # points a surface normal is estimated from
 FLAT_M = 0.0015  # an end bulging no more than this over its width is a face
 FACE_MIN_POINTS, FACE_MIN_SHARE = 20, 0.1  # a face holds this many and this share of points
 MAX_GAP_M = 0.05  # slices farther apart along the axis than this are not one object's
+LONE_SLICES = 5  # a slice with no other this many slices near is strays' (_main_run)
 #: An axis this near as good as the best, fitted from up, is taken: a tethered object hangs
 #: along its tether, and a flat ellipsoid seen from the side fits as well lying across the
 #: view, its depth taken for its height (random-7-011: 10.6 x 7.5 cm, its centroid 16 mm
@@ -178,8 +179,15 @@ def _main_run(count: np.ndarray) -> np.ndarray:
     """Which slices belong to the object: of the runs of slices with MIN_SLICE_POINTS wall
     points and gaps of at most MAX_GAP_M (a bottle's hidden shoulder), the one with the most
     points. Three points of a tether 18 cm below an ellipsoid made a slice of their own,
-    and the outline reached down to them (learnt 40 cm long, not 18)."""
+    and the outline reached down to them (learnt 40 cm long, not 18). A slice with no other
+    within LONE_SLICES is no part of it either: a tether's few points 3-5 cm below an
+    ellipsoid's end made one, and the outline 5 cm longer than the object; such slices at
+    the run's ends are left out."""
     used = np.flatnonzero(count >= MIN_SLICE_POINTS)
+    while len(used) > 1 and used[1] - used[0] > LONE_SLICES:
+        used = used[1:]
+    while len(used) > 1 and used[-1] - used[-2] > LONE_SLICES:
+        used = used[:-1]
     keep = np.zeros(len(count), bool)
     if not len(used):
         return keep
@@ -277,7 +285,11 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     length = float(z[-1] - z[0])
     mid = z[0] + solid_of_revolution(z, outline)[1]
     offset = (z[0] + z[-1]) / 2 - mid
-    if prior is not None and abs(length - prior.length) > _length_slack(prior.length):
+    # Only a shorter view hides part of what was learnt; a longer one sees more of the
+    # object than the learning frames did (a 9.2 cm ellipsoid learnt 7.6 cm from above,
+    # then seen 8.4-8.8 cm as it swung: random-127-001, 517 frames refused) and is fitted
+    # as it is.
+    if prior is not None and prior.length - length > _length_slack(prior.length):
         mid = _centre_from_face(h, end[inliers], a, prior, (z[0], z[-1]))
         length, offset = prior.length, prior.offset * (1.0 if a[2] >= 0 else -1.0)
     centre = c + mid * a
