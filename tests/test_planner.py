@@ -991,6 +991,35 @@ def test_the_idle_arm_moves_to_a_standby_it_plans_from_not_the_first_guessed(
         service.bus.close()
 
 
+def test_after_a_grasp_from_where_it_was_the_arm_returns_there_not_to_an_untested_standby(
+        router: Router, arm: ArmModel) -> None:
+    """A grasp planned from the pose the arm was in (its home) carried the first-ranked
+    standby for after it, untested: random-131-017's arm returned there after its first
+    grasp, nothing planned from it, and the second trial was lost. Until a grasp has planned
+    from the standby, the arm returns to the pose its grasp was planned from."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    listener = router.bus("listener")
+    plans: list[GraspPlan] = []
+    listener.subscribe(PLAN_KEY, lambda m, d: plans.append(m), GraspPlan)
+    time.sleep(0.5)  # the listener's subscription reaches the router
+    try:
+        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
+        bad, good = poses[planned.index(0)], poses[planned.index(3)]
+        service.standby(T, 0)
+        service._standby = (*service._standby[:3], [bad, good])
+        service.q_now = good.copy()
+        service.plan(*delivered(path(10.0), 10.0))
+        assert service.counters["plans"] == 1, told(service)
+        deadline = time.monotonic() + 10.0
+        while not plans and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):
+                listener.dispatch(listener.inbox.get(timeout=0.1))
+        np.testing.assert_allclose(plans[0].standby, good)
+    finally:
+        listener.close()
+        service.bus.close()
+
+
 def test_an_idle_arm_with_one_standby_that_plans_nothing_searches_for_others(
         router: Router, arm: ArmModel) -> None:
     """Where every trial grasp solves from facing the object, the standby poses were facing

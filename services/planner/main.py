@@ -334,7 +334,7 @@ class PlannerService(Service):
         self._failing_since_ns = None
         self._hint = Hint.of(result, path)
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
-                          self.standby(T_world_base, msg.header.stamp_ns))
+                          self.return_pose(T_world_base, msg.header.stamp_ns))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
         self.bus.publish(PLAN_KEY, plan)
 
@@ -385,6 +385,15 @@ class PlannerService(Service):
                 if min(off) < self.config.standby_tolerance_rad:
                     self._choice = int(np.argmin(off))
         return cached[3][self._choice].copy()
+
+    def return_pose(self, T_world_base: np.ndarray, stamp_ns: int) -> np.ndarray:
+        """Where the arm waits after the grasp it is planned for: its standby once a grasp
+        has planned from there (:meth:`standby_plans`, :meth:`probe_standby`), else the pose
+        this grasp was planned from. A grasp planned from the home pose carried the first
+        ranked standby, untested: random-131-017's arm returned there after its first grasp,
+        nothing planned from it, and the second trial was lost (no plan approved for 5 s)."""
+        q = self.standby(T_world_base, stamp_ns)
+        return q if self._accepted == self._choice else self.q_now.copy()
 
     def other_standbys(self, j: int) -> list[np.ndarray]:
         """The standby poses but the ``j``-th: clear of the object, so a move may stop at
