@@ -29,7 +29,7 @@ from wavegrasp.planner.main import PLAN_KEY, STANDBY_KEY, PlannerService, Planne
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp, quickest_equivalent
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
-from wavegrasp.runtime.bus import Delivery
+from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
     ArmStandby,
@@ -459,6 +459,14 @@ def delivered(path: PredictedPath, now: float, warm: bool = True
     return msg, Delivery("p", b"", "", None, 0, 0)
 
 
+def wait_for(listener: Bus, got: list) -> None:
+    """Dispatch ``listener``'s messages until ``got`` holds one, 10 s at most."""
+    deadline = time.monotonic() + 10.0
+    while not got and time.monotonic() < deadline:
+        with contextlib.suppress(queue.Empty):
+            listener.dispatch(listener.inbox.get(timeout=0.1))
+
+
 def facing_away(service: PlannerService, arm: ArmModel) -> np.ndarray:
     """Mount the service's arm facing away (+x) from a can swinging in front of its
     shoulder; returns T_world_base (4, 4)."""
@@ -487,12 +495,6 @@ def test_while_the_predictor_warms_up_the_arm_moves_to_its_standby_and_nothing_i
     listener.subscribe(STANDBY_KEY, lambda m, d: moves.append(m), ArmStandby)
     listener.subscribe(PLAN_KEY, lambda m, d: plans.append(m), GraspPlan)
 
-    def wait_for(got: list) -> None:
-        deadline = time.monotonic() + 10.0
-        while not got and time.monotonic() < deadline:
-            with contextlib.suppress(queue.Empty):
-                listener.dispatch(listener.inbox.get(timeout=0.1))
-
     time.sleep(0.5)  # the listener's subscriptions reach the router
     try:
         T_world_base = facing_away(service, arm)
@@ -503,14 +505,14 @@ def test_while_the_predictor_warms_up_the_arm_moves_to_its_standby_and_nothing_i
         service.plan(*delivered(prediction(5.0), 5.0, warm=False))
         assert service.counters["standby moves"] == 1, told(service)
         assert service.counters["plans"] + service.counters["no plan"] == 0, told(service)
-        wait_for(moves)
+        wait_for(listener, moves)
         q = np.array([s.positions for s in moves[0].joint_trajectory])
         assert clearance(arm, T_world_base, q, np.array(service.seen), service.body) > 0.0
         service.q_now = q[-1]
         end = moves[0].joint_trajectory[-1].t_ns * 1e-9
         service.plan(*delivered(prediction(end + 0.1), end + 0.1))
         assert service.counters["plans"] == 1, told(service)
-        wait_for(plans)
+        wait_for(listener, plans)
         assert len(plans) == 1
     finally:
         listener.close()
@@ -1010,10 +1012,7 @@ def test_after_a_grasp_from_where_it_was_the_arm_returns_there_not_to_an_unteste
         service.q_now = good.copy()
         service.plan(*delivered(path(10.0), 10.0))
         assert service.counters["plans"] == 1, told(service)
-        deadline = time.monotonic() + 10.0
-        while not plans and time.monotonic() < deadline:
-            with contextlib.suppress(queue.Empty):
-                listener.dispatch(listener.inbox.get(timeout=0.1))
+        wait_for(listener, plans)
         np.testing.assert_allclose(plans[0].standby, good)
     finally:
         listener.close()

@@ -387,11 +387,12 @@ class PlannerService(Service):
         return cached[3][self._choice].copy()
 
     def return_pose(self, T_world_base: np.ndarray, stamp_ns: int) -> np.ndarray:
-        """Where the arm waits after the grasp it is planned for: its standby once a grasp
-        has planned from there (:meth:`standby_plans`, :meth:`probe_standby`), else the pose
-        this grasp was planned from. A grasp planned from the home pose carried the first
-        ranked standby, untested: random-131-017's arm returned there after its first grasp,
-        nothing planned from it, and the second trial was lost (no plan approved for 5 s)."""
+        """Where the arm waits after the grasp it is planned for: its standby once accepted
+        (a grasp planned from there, or every pose tried without one: :meth:`standby_plans`,
+        :meth:`probe_standby`), else the pose this grasp was planned from. A grasp planned
+        from the home pose carried the first ranked standby, untested: random-131-017's arm
+        returned there after its first grasp, nothing planned from it, and the second trial
+        was lost (no plan approved for 5 s)."""
         q = self.standby(T_world_base, stamp_ns)
         return q if self._accepted == self._choice else self.q_now.copy()
 
