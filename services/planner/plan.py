@@ -399,8 +399,8 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     along, u = rel @ move, T_grasp[:3, :3].T @ move
     astride = ((times >= final_from) & (along <= here.extent(move) + jaw_lead(arm, u))
                & (along >= -here.extent(move) - jaw_lead(arm, -u)))
-    need, slack = jaw_needs(body, times[astride], rel[astride], x, path, width)
-    if need.max() + 2.0 * slack.max() > arm.jaw_max_opening_m:
+    need = jaw_needs(body, times[astride], rel[astride], x, width)
+    if need.max() > arm.jaw_max_opening_m:
         return "object would hit a finger", 0.0
     preshape = min(arm.jaw_max_opening_m, need.max() + 2.0 * cfg.jaw_margin_m)
     t_close = jaw_closing(preshape, width, t_g, times[astride], need, arm.jaw_closing_mps)
@@ -409,21 +409,15 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
 
 
 def jaw_needs(body: Body, times: np.ndarray, rel: np.ndarray, x: np.ndarray,
-              path: PredictedPath, width: float) -> tuple[np.ndarray, np.ndarray]:
+              width: float) -> np.ndarray:
     """The jaw's least opening, metres, at each of ``times`` (k,) s while the fingers are
     either side of the object (``rel`` (k, 3): the object from the tool point, world; ``x``:
-    the closing direction), the object as it is turned then and off the jaw's middle; and
-    the slack, metres, each side needs for the prediction's error there: its sigma for a
-    box, nothing for a round body (a fingertip meeting a curved surface off the middle
-    turns it into the jaw; a box's face or edge lands on the tip: random-139-015's 12.9 cm
-    box, 5 mm off the prediction, stopped on a fingertip twice). ``width``: the opening at
-    the grasp, for no time astride."""
+    the closing direction), the object as it is turned then and off the jaw's middle.
+    ``width``: the opening at the grasp, for no time astride."""
     if not len(times):
-        return np.array([width]), np.zeros(1)
-    need = np.array([2.0 * (body.at(t).extent(x) + abs(float(r @ x)))
+        return np.array([width])
+    return np.array([2.0 * (body.at(t).extent(x) + abs(float(r @ x)))
                      for t, r in zip(times, rel, strict=True)])
-    sigma = np.interp(times, path.times_s, path.sigma) if body.faces is not None else 0.0
-    return need, np.zeros(len(times)) + sigma
 
 
 def jaw_closing(preshape: float, width: float, t_g: float, times: np.ndarray,
