@@ -838,36 +838,6 @@ def test_an_idle_arm_whose_standby_plans_nothing_for_a_period_waits_in_another(
         service.bus.close()
 
 
-def test_an_arm_moving_to_a_standby_that_plans_nothing_probes_the_others_on_arrival(
-        router: Router, arm: ArmModel) -> None:
-    """While the arm moves to its standby the planner plans from there; where nothing plans
-    on the way, the period after which the other poses are probed counts from then, so on
-    arrival (and a second's rest) the arm is sent to one that plans at once, not a period
-    later (random-139-034: 21 predictions planned nothing first)."""
-    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
-    try:
-        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
-        bad, good = poses[planned.index(0)], poses[planned.index(3)]
-        others = [q for q in poses if q is not bad and q is not good]
-        service.standby(T, 0)
-        service._standby = (*service._standby[:3], [bad, good, *others])
-        service._standby_end_ns, service.arm_moving = 12_000_000_000, True
-        for now in 10.0 + 0.25 * np.arange(8):
-            service.plan(*delivered(path(now), now))
-        assert service.counters["standby move: nothing planned ahead"] == 8, told(service)
-        assert service.counters["no plan"] == service.counters["plans"] == 0, told(service)
-        service.arm_moving, service.q_now = False, bad.copy()
-        now = 12.25
-        while not service.counters["standby changed"] and now < 16.0:
-            service.plan(*delivered(path(now), now))
-            now += 0.25
-        assert service.counters["standby changed"] == 1, told(service)
-        assert now - 0.25 < 13.0 + 0.5  # a second after the move, not a period after arrival
-        np.testing.assert_allclose(service.standby(T, int(now * 1e9)), good)
-    finally:
-        service.bus.close()
-
-
 def sphere_by_the_shoulder(service: PlannerService, arm: ArmModel):  # noqa: ANN201
     """random-7-034 given to ``service``: a 13 cm sphere swinging 23 cm, 0.55 m from the
     shoulder and 0.38 m above it, seen for a while. Returns T_world_base, the swing (a

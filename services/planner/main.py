@@ -128,8 +128,6 @@ class PlannerService(Service):
         self._accepted: int | None = None
         self._tried: set[int] = set()
         self._failing_since_ns: int | None = None  # no plan from the idle arm since
-        #: No plan from the standby the arm is moving to since (:meth:`plan_ahead`).
-        self._ahead_since: int | None = None
         #: Search every standby pose, even where facing the object solves every grasp: set
         #: once nothing planned from facing for a period (:meth:`probe_standby`).
         self._search_all = False
@@ -305,10 +303,15 @@ class PlannerService(Service):
                                    f"{type(exc).__name__}: {exc}"[:300])
 
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
-        to_standby = msg.header.stamp_ns < self._standby_end_ns  # a move it asked for
-        if msg.header.stamp_ns < self.busy_until_ns or (self.arm_moving and not to_standby):
+        if msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             self._failing_since_ns = None
+            return
+        if msg.header.stamp_ns < self._standby_end_ns:
+            # Until the arm has started the move it asked for it still looks idle; a plan
+            # from here would be approved and then refused by an arm moving elsewhere
+            # (measured: two trials lost waiting for a grasp that never started).
+            self.counters["skipped: standby move"] += 1
             return
         try:
             T_world_base = self.tf.lookup("world", self.arm.base_link)
@@ -316,13 +319,6 @@ class PlannerService(Service):
             self.counters["skipped: no arm mount"] += 1
             raise ValueError(f"no transform to the arm's mount: {exc}") from None
         path = PredictedPath.from_message(msg)
-        if to_standby:
-            # Until the arm has started the move it asked for it still looks idle; a plan
-            # from here would be approved and then refused by an arm moving elsewhere
-            # (measured: two trials lost waiting for a grasp that never started).
-            self.counters["skipped: standby move"] += 1
-            self.plan_ahead(path, msg.header.stamp_ns, T_world_base)
-            return
         result = plan_grasp(path, msg.header.stamp_ns * 1e-9, self.arm, T_world_base,
                             self.q_now, self.turning(path.period_s), self.config, self._hint)
         if not msg.warm:
@@ -335,7 +331,7 @@ class PlannerService(Service):
             self.ask_standby(msg, d, path, T_world_base)
             return
         self.counters["plans"] += 1
-        self._failing_since_ns = self._ahead_since = None
+        self._failing_since_ns = None
         self._hint = Hint.of(result, path)
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
                           self.return_pose(T_world_base, msg.header.stamp_ns))
@@ -354,7 +350,6 @@ class PlannerService(Service):
         if isinstance(result, Plan):
             self.counters["warming up: planned"] += 1
             self._hint, self._failing_since_ns = Hint.of(result, path), None
-            self._ahead_since = None
         else:
             self.counters["warming up: no plan"] += 1
             self.ask_standby(msg, d, path, T_world_base)
@@ -447,23 +442,6 @@ class PlannerService(Service):
         self._choice, self._accepted, self._failing_since_ns = j, j, None
         return move
 
-    def plan_ahead(self, path: PredictedPath, now_ns: int, T_world_base: np.ndarray) -> None:
-        """While the arm moves to its standby, plan from there, one plan per prediction: a
-        grasp that plans is the one tried first on arrival, and where nothing plans the
-        period after which other standby poses are probed counts from the first such
-        prediction, so an arm arriving where nothing plans probes them at once
-        (random-139-034: the arm moved 2.2 s to a pose a forecast still warming up had
-        planned from, then planned none of 21 predictions there, a period, before the
-        probes sent it to one that planned every one)."""
-        if self._standby is None:
-            return
-        if self.plans_from(self._standby[3][self._choice], path, now_ns, T_world_base):
-            self.counters["standby move: planned ahead"] += 1
-            self._ahead_since = None
-        else:
-            self.counters["standby move: nothing planned ahead"] += 1
-            self._ahead_since = now_ns if self._ahead_since is None else self._ahead_since
-
     def plans_from(self, q: np.ndarray, path: PredictedPath, now_ns: int,
                    T_world_base: np.ndarray) -> bool:
         """Does a grasp plan from the arm at ``q`` (radians, shape (n,)) on ``path``? If so,
@@ -505,9 +483,6 @@ class PlannerService(Service):
         now_ns = msg.header.stamp_ns
         if self._failing_since_ns is None or now_ns < self._failing_since_ns:
             self._failing_since_ns = now_ns  # counted from the first, not a second after a move
-        if self._ahead_since is not None:  # nothing planned from here since, on the way
-            self._failing_since_ns = min(self._failing_since_ns, self._ahead_since)
-            self._ahead_since = None
         seen_s = (self._seen_ns[-1] - self._seen_ns[0]) * 1e-9 if self._seen_ns else 0.0
         if (seen_s < SWAY_SEEN_S and len(self.seen) < self.seen.maxlen) or (
                 now_ns < self._standby_end_ns + STANDBY_AGAIN_NS):
@@ -529,7 +504,7 @@ class PlannerService(Service):
             return
         times, q, qd = move
         t_ns = np.rint(times * 1e9).astype(np.int64)
-        self._standby_end_ns, self._ahead_since = int(t_ns[-1]), None
+        self._standby_end_ns = int(t_ns[-1])
         self.counters["standby moves"] += 1
         self.bus.publish(STANDBY_KEY, ArmStandby.model_validate(dict(
             header=derived_header(msg.header, self.name, d.recv_ns), t_start_ns=int(t_ns[0]),
