@@ -376,7 +376,7 @@ class PlannerService(Service):
             probed = cached[3][self._choice] if cached and cached[1] == key and self._choice \
                 else None
             poses = standby_poses(self.arm, T_world_base, seen, self.body,
-                                  search_all=self._search_all)
+                                  search_all=self._search_all, cfg=self.config)
             self._standby = cached = (stamp_ns, key, sway, poses or [self.arm.q_home.copy()])
             self._choice, self._probe, self._failing_since_ns = 0, 0, None
             self._accepted, self._tried = None, set()

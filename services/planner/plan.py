@@ -71,6 +71,11 @@ class PlannerConfig(BaseModel):
     min_outwards: float = Field(0.0, description="an arm does not reach round behind the object "
                                 "to point back at itself: the least cosine between the tool's z "
                                 "and the direction from the shoulder to the object")
+    level_slack_deg: float | None = Field(15.0, description="a tool pointing back in space "
+                                          "is still taken if in the level plane it points "
+                                          "back no more than this past min_outwards (a tool "
+                                          "reaching down onto an object above the shoulder); "
+                                          "None: space alone decides")
     offset_tries: int = Field(4, description="directions n of P_init tried per grasp pose: "
                               "the paper's first, then turned about the final move")
     stage_tries: int = Field(4, description="starts of the move to P_init tried, spread "
@@ -173,7 +178,7 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
             T_grasp = np.eye(4)
             T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
             # Cheap rejections first; they do not count as tries.
-            reason = cheap_rejection(arm, R, outwards, here, cfg.min_outwards)
+            reason = cheap_rejection(arm, R, outwards, here, cfg)
             if reason:
                 rejected[reason] += 1
                 continue
@@ -236,15 +241,40 @@ def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body
 
 
 def cheap_rejection(arm: ArmModel, R: np.ndarray, outwards: np.ndarray, body: Body,
-                    min_outwards: float) -> str | None:
+                    cfg: PlannerConfig) -> str | None:
     """Why a tool orientation ``R`` (3, 3) is refused before any inverse kinematics, or
-    None: it points back at the arm, or the object is wider across its jaws than they
-    open."""
-    if R[:, 2] @ outwards < min_outwards:
+    None: it points back at the arm (:func:`points_back`), or the object is wider across
+    its jaws than they open."""
+    if points_back(R[:, 2], outwards, cfg.min_outwards, cfg.level_slack_deg):
         return "points back at the arm"
     if 2.0 * body.extent(R[:, 0]) > arm.jaw_max_opening_m:
         return "wider than the jaw"
     return None
+
+
+def points_back(z: np.ndarray, outwards: np.ndarray, min_outwards: float,
+                level_slack_deg: float | None) -> bool:
+    """Whether a tool pointing along ``z`` (unit, world) points back at the arm whose
+    shoulder is behind the object along ``outwards`` (unit, the shoulder to the object):
+    its cosine with ``outwards`` is below ``min_outwards`` in space, and in the level plane
+    by more than ``level_slack_deg`` too (None: in space alone). A tool pointing down onto
+    an object above the shoulder points back in space but not round behind it: so refused,
+    a 14 cm sphere 13 cm above the shoulder planned none of 113 predictions, where a
+    brute-force search found 11 poses that planned, 10 of them within 30 degrees of straight
+    down (random-149-022). The slack keeps a tool pointing down, or level across the way
+    out, from being refused on a millimetre of the object's sway."""
+    if z @ outwards >= min_outwards:
+        return False
+    if level_slack_deg is None:
+        return True
+    level_z, level_out = z[:2], outwards[:2]
+    norm_z, norm_out = np.linalg.norm(level_z), np.linalg.norm(level_out)
+    if norm_z < 1e-9:  # straight down: never round behind the object
+        return False
+    if norm_out < 1e-9:  # the object straight above or below the shoulder
+        return True
+    slack = np.sin(np.radians(level_slack_deg))
+    return bool(level_z @ level_out / (norm_z * norm_out) < min_outwards - slack)
 
 
 def quickest_equivalent(arm: ArmModel, q_f: np.ndarray, q_now: np.ndarray

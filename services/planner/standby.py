@@ -21,16 +21,16 @@ from wavegrasp.planner.timing import Limits, sample_segment, segment
 
 
 def standby_pose(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
-                 margin_m: float = 0.08) -> np.ndarray:
+                 margin_m: float = 0.08, cfg: PlannerConfig | None = None) -> np.ndarray:
     """Where the arm waits between attempts, radians, shape (n,): the first of
     :func:`standby_poses`, or the home pose before the object has been seen."""
-    poses = standby_poses(arm, T_world_base, seen, body, margin_m)
+    poses = standby_poses(arm, T_world_base, seen, body, margin_m, cfg=cfg)
     return poses[0] if poses else arm.q_home.copy()
 
 
 def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
-                  margin_m: float = 0.08, unsolved_s: float = 4.0, search_all: bool = False
-                  ) -> list[np.ndarray]:
+                  margin_m: float = 0.08, unsolved_s: float = 4.0, search_all: bool = False,
+                  cfg: PlannerConfig | None = None) -> list[np.ndarray]:
     """Poses the arm may wait in between attempts, best first, radians, shape (n,) each.
     ``seen`` : array, shape (k, 3), metres, world: where the object's centroid has been
     lately (none yet: no poses).
@@ -52,13 +52,14 @@ def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, bod
     Where every trial grasp solves from facing, facing alone (the search takes about 0.5
     s), or with ``search_all`` facing first and the ready poses after it: solving is not
     planning, and a 13 cm sphere 0.76 m out, 0.49 m above the mount, planned from facing
-    in 49 % of predictions and from four of the ready poses in all (random-103-005)."""
+    in 49 % of predictions and from four of the ready poses in all (random-103-005). ``cfg``:
+    the planner's (default: its defaults)."""
     seen = np.asarray(seen, dtype=float).reshape(-1, 3)
     seen = seen[~np.isnan(seen).any(axis=1)]
     if not len(seen):
         return []
     T_base_world = np.linalg.inv(T_world_base)
-    grasps = [T_base_world @ T for T in trial_grasps(arm, T_world_base, seen, body)]
+    grasps = [T_base_world @ T for T in trial_grasps(arm, T_world_base, seen, body, cfg=cfg)]
 
     def gap(q: np.ndarray, seen_world: np.ndarray = seen, in_world: Body = body) -> float:
         return clearance(arm, T_world_base, q, seen_world, in_world)  # the seabed's in world
@@ -101,12 +102,14 @@ def standby_poses(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, bod
 
 
 def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body: Body,
-                 per_place: int = 6) -> list[np.ndarray]:
+                 per_place: int = 6, cfg: PlannerConfig | None = None) -> list[np.ndarray]:
     """Grasp poses, shape (4, 4), world, the planner would try first for an object at the
     ends of its sway (arriving there outwards, where it slows: the grasp times the planner
     prefers) and in its middle: the first ``per_place`` orientations of
     :func:`~wavegrasp.planner.approach.grasp_orientations` at each that point away from the
-    shoulder and fit the open jaw. seen : array, shape (k, 3), metres, world."""
+    shoulder and fit the open jaw (:func:`~wavegrasp.planner.plan.cheap_rejection` with
+    ``cfg``). seen : array, shape (k, 3), metres, world."""
+    cfg = cfg if cfg is not None else PlannerConfig()
     c = seen.mean(axis=0)
     dev = seen - c
     axis = np.linalg.eigh(dev.T @ dev)[1][:, -1]
@@ -115,7 +118,7 @@ def trial_grasps(arm: ArmModel, T_world_base: np.ndarray, seen: np.ndarray, body
     poses = []
     for p, d in ((seen[np.argmax(along)], axis), (seen[np.argmin(along)], -axis), (c, axis)):
         outwards, _, frames = tool_orientations(p, d, shoulder, body)
-        kept = [R for R in frames if cheap_rejection(arm, R, outwards, body, 0.0) is None]
+        kept = [R for R in frames if cheap_rejection(arm, R, outwards, body, cfg) is None]
         for R in kept[:per_place]:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, p
