@@ -16,7 +16,13 @@ import numpy as np
 import pytest
 
 from wavegrasp.perception.box import FaceOn, fit_box
-from wavegrasp.perception.fit import ShapeFit, check_points, fit_cylinder, fit_sphere
+from wavegrasp.perception.fit import (
+    ShapeFit,
+    check_points,
+    fit_cylinder,
+    fit_sphere,
+    wider_than_seen,
+)
 from wavegrasp.perception.pipeline import learnt_shape
 from wavegrasp.perception.revolution import end_faces, fit_revolution, normals
 from wavegrasp.perception.shape import fit_shape
@@ -269,6 +275,49 @@ def test_a_box_whose_faces_fit_is_not_taken_for_a_free_outline() -> None:
     fit = fit_shape(points + noise[:, None] * normals, eye)
     assert fit.shape == "box"
     assert np.linalg.norm(fit.centre - centre) < 0.005
+
+
+def thin_box_far(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 4.2 x 2.8 x 30 cm box turned 59 degrees, 1.6 m from a camera 15-25 degrees above
+    it with 7.6 mm pixels there (256 px across 70 degrees) and its depth noise (3.8 mm):
+    each face a few pixels wide (random-151-020). Returns (points, eye)."""
+    rng = np.random.default_rng(seed)
+    centre = np.array([0.0, 0.0, 0.46])
+    el, az = np.radians(rng.uniform(15, 25)), rng.uniform(0, 2 * np.pi)
+    eye = centre + 1.6 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                   np.sin(el)])
+    points, _ = box_faces(rng, np.array([0.042, 0.028, 0.30]), 59.0, centre, eye,
+                          spacing=0.0076)
+    ray = points - eye
+    dist = np.linalg.norm(ray, axis=1, keepdims=True)
+    return points + rng.normal(0, NOISE, (len(points), 1)) * dist * ray, eye
+
+
+def test_a_curved_surface_wider_than_its_points_is_no_surface_seen() -> None:
+    """A face a few pixels wide lies on an arc of any large circle: outlines of 4-25 cm
+    radius and spheres of tens of metres were fitted to a thin box's faces, and it was
+    learnt as a solid 14.8 cm across (random-151-020). A sphere, cylinder or outline wider
+    than the points spread across it is refused; the surfaces that were seen are not."""
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        points, vp, centre = sphere_cloud(rng, radius=0.05)
+        seen = points[fit_sphere(points, vp).inliers]  # not the tether's nor strays
+        assert wider_than_seen(seen, centre, None, vp, 0.05) is None
+        assert wider_than_seen(seen, centre, None, vp, 0.1) is not None
+        points, vp, centre, axis = cylinder_cloud(rng, 0.03, 0.2)
+        seen = points[fit_cylinder(points, vp).inliers]
+        assert wider_than_seen(seen, centre, axis, vp, 0.03) is None
+        assert wider_than_seen(seen, centre, axis, vp, 0.07) is not None
+    for seed in range(12):
+        points, eye = thin_box_far(seed)
+        centre = points.mean(axis=0)
+        reason = wider_than_seen(points, centre, np.array([0.0, 0.0, 1.0]), eye, 0.074)
+        assert reason is not None and "flat face" in reason
+        try:
+            fit = fit_shape(points, eye)
+        except ValueError:
+            continue
+        assert fit.shape == "box" or fit.radius < 0.035, (seed, fit.shape, fit.radius)
 
 
 @pytest.mark.parametrize("seed", range(10))

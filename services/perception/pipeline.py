@@ -149,6 +149,7 @@ class Perception:
         self.axis: np.ndarray | None = None  # the last reported fit's axis, world
         self.frame: np.ndarray | None = None  # and a box's axes (columns)
         self.learnt: list[ShapeFit] = []
+        self.disagreed = 0  # fits in a row that differed from the learnt ones
         self.frames = 0
         self.spans: deque[tuple[float, float]] = deque(maxlen=self.cfg.span_frames)
         self.span_axis: np.ndarray | None = None  # the direction self.spans are along
@@ -181,7 +182,15 @@ class Perception:
         if fit.sigma > self.cfg.max_sigma_m:
             return self._miss(f"partial view: centroid uncertain by {fit.sigma * 1e3:.0f} mm")
         if self.prior is None and not consistent_with(fit, self.learnt):
+            # The first fits are taken as they come: where none since has agreed with them
+            # for as many frames as a shape is learnt from, they were the odd ones out, and
+            # learning starts again (a thin box's first three, a sphere of 90 m among them,
+            # refused the next 90 frames: random-151-020).
+            self.disagreed += 1
+            if self.disagreed >= self.cfg.learn_frames:
+                self.learnt, self.disagreed = [], 0
             return self._miss("partial view: the shape differs from the frames before")
+        self.disagreed = 0
         self._update_track(fit, stamp_ns)
         return FrameResult(fit, candidate[fit.inliers], span=self._span(candidate, fit))
 

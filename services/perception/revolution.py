@@ -24,6 +24,7 @@ from wavegrasp.perception.fit import (
     _unit,
     check_points,
     check_vector,
+    wider_than_seen,
 )
 from wavegrasp.wavetank.body import solid_of_revolution
 
@@ -292,6 +293,8 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     if prior is not None and prior.length - length > _length_slack(prior.length):
         mid = _centre_from_face(h, end[inliers], a, prior, (z[0], z[-1]))
         length, offset = prior.length, prior.offset * (1.0 if a[2] >= 0 else -1.0)
+    if reason := wider_than_seen(p[inliers], c, a, vp, float(outline.max())):
+        raise ValueError(reason)
     centre = c + mid * a
     if np.linalg.norm(centre - m) > np.ptp(p, axis=0).max():
         raise ValueError("the outline's centre falls outside the object (no solid of "
@@ -305,3 +308,4 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     a, offset = (a, offset) if a[2] >= 0 else (-a, -offset)
     return ShapeFit("revolution", centre, a, float(outline.max()), length, rms,
                     inliers, sigma, offset=float(offset))
+

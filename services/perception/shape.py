@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from wavegrasp.perception.box import FaceOn, fit_box
-from wavegrasp.perception.fit import ShapeFit, fit_cylinder, fit_sphere
+from wavegrasp.perception.fit import ShapeFit, fit_cylinder, fit_sphere, wider_than_seen
 from wavegrasp.perception.revolution import SLICE_M, fit_revolution
 
 BOX_EXPLAINED = 0.8  # fit_shape: a box's faces must hold this fraction of the points
@@ -34,7 +34,9 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
     Else both are fitted with free sizes and the sphere wins unless the cylinder's RMS is below
     SHAPE_RMS_RATIO times the sphere's: a sphere fitted to a cylinder leaves residuals of several
     millimetres (the wall is straight along the axis), a cylinder fitted to a sphere does no
-    better than the sphere (measured: 4-7 times worse); ties go to the simpler sphere.
+    better than the sphere (measured: 4-7 times worse); ties go to the simpler sphere. A
+    sphere, cylinder or outline wider than the points spread across it is none of these
+    (:func:`~wavegrasp.perception.fit.wider_than_seen`).
     """
     if prior is not None:
         if prior.shape == "sphere":
@@ -44,8 +46,12 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
         if prior.shape == "revolution":
             return fit_revolution(points, viewpoint, prior)
         return fit_cylinder(points, viewpoint, prior.radius, prior.length, prior.axis)
-    sphere, cylinder = fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint)
-    best = cylinder if cylinder.rms < SHAPE_RMS_RATIO * sphere.rms else sphere
+    # A sphere or cylinder wider than its points spread across it is no surface that was
+    # seen: a face a few pixels wide fits one of any size (fit.wider_than_seen).
+    curved = [f for f in (fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint))
+              if not seen_narrower(points, viewpoint, f)]
+    best = min(curved, key=lambda f: f.rms * (SHAPE_RMS_RATIO if f.shape == "sphere" else 1.0),
+               default=None)
     face_on: FaceOn | None = None
     for fit in (lambda p, v: fit_box(p, v, raw=raw), fit_revolution):
         try:
@@ -54,6 +60,11 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
             face_on = exc
             continue
         except ValueError:
+            continue
+        if best is None:
+            if other.shape == "revolution" or (other.inliers.mean() >= BOX_EXPLAINED
+                                               and all(other.whole)):
+                best = other
             continue
         if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
                 other.whole) or other.rms >= best.rms):
@@ -68,9 +79,20 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
                 not explains_more) and not outline_explains_better(other, best):
             continue
         best = other
-    if face_on is not None and best.rms >= SHAPE_RMS_RATIO * face_on.rms(points):
+    if face_on is not None and (best is None
+                                or best.rms >= SHAPE_RMS_RATIO * face_on.rms(points)):
         raise face_on
+    if best is None:
+        raise ValueError("no shape fits as seen: every curved one is wider than its points")
     return best
+
+
+def seen_narrower(points: np.ndarray, viewpoint: np.ndarray, fit: ShapeFit) -> bool:
+    """Whether the points seen are narrower than the sphere or cylinder ``fit`` to them
+    (:func:`~wavegrasp.perception.fit.wider_than_seen`)."""
+    return wider_than_seen(points[fit.inliers], fit.centre,
+                           None if fit.shape == "sphere" else fit.axis, viewpoint,
+                           fit.radius) is not None
 
 
 #: Free parameters of each fit: a sphere's centre and radius; a cylinder's also its axis and
