@@ -139,6 +139,8 @@ def wider_than_seen(points: np.ndarray, centre: np.ndarray, axis: np.ndarray | N
     else:
         across = np.abs((points - centre) @ _unit(np.cross(axis, view)))
     seen = float(np.percentile(across, 98))
+    if radius <= RIM_RATIO * seen:  # most fits: no need for the spacing (a tree, per frame)
+        return None
     spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
     if radius > RIM_RATIO * seen + RIM_SPACINGS * spacing:
         return (f"a surface {radius * 200:.1f} cm across, its points {seen * 200:.1f} cm "
