@@ -308,4 +308,3 @@ def fit_revolution(points: np.ndarray, viewpoint: np.ndarray,
     a, offset = (a, offset) if a[2] >= 0 else (-a, -offset)
     return ShapeFit("revolution", centre, a, float(outline.max()), length, rms,
                     inliers, sigma, offset=float(offset))
-

@@ -50,8 +50,8 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
     # seen: a face a few pixels wide fits one of any size (fit.wider_than_seen).
     curved = [f for f in (fit_sphere(points, viewpoint), fit_cylinder(points, viewpoint))
               if not seen_narrower(points, viewpoint, f)]
-    best = min(curved, key=lambda f: f.rms * (SHAPE_RMS_RATIO if f.shape == "sphere" else 1.0),
-               default=None)
+    best = min(curved, default=None,  # the cylinder only below SHAPE_RMS_RATIO of the sphere
+               key=lambda f: f.rms * (SHAPE_RMS_RATIO if f.shape == "sphere" else 1.0))
     face_on: FaceOn | None = None
     for fit in (lambda p, v: fit_box(p, v, raw=raw), fit_revolution):
         try:
