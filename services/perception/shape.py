@@ -61,13 +61,11 @@ def fit_shape(points: np.ndarray, viewpoint: np.ndarray, prior: ShapeFit | None 
             continue
         except ValueError:
             continue
-        if best is None:
-            if other.shape == "revolution" or (other.inliers.mean() >= BOX_EXPLAINED
-                                               and all(other.whole)):
-                best = other
-            continue
         if other.shape == "box" and (other.inliers.mean() < BOX_EXPLAINED or not all(
-                other.whole) or other.rms >= best.rms):
+                other.whole) or (best is not None and other.rms >= best.rms)):
+            continue
+        if best is None:  # no sphere or cylinder was seen: nothing to compare with
+            best = other
             continue
         # Explaining more points is a reason only against a sphere or cylinder (which leave a
         # neck out as outliers): a box counts only the points within MIN_THRESHOLD of its
