@@ -8,6 +8,7 @@ import queue
 import time
 from collections import Counter
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -254,6 +255,34 @@ def test_unreachable_object_is_rejected_with_the_reason(arm: ArmModel,
     far = prediction(10.0, centre=(3.0, 3.0, 0.5))
     result = plan_grasp(far, 10.0, arm, T_world_base, arm.q_home, BODY, PlannerConfig())
     assert isinstance(result, Counter) and result["out of reach"] > 0
+
+
+def test_a_grasp_the_arm_reaches_only_past_the_first_seconds_plans_with_its_own_budget(
+        arm: ArmModel) -> None:
+    """A 21 cm box swinging with a 2.24 s period, the arm at its standby (random-157-018):
+    the phases it can take come round once a period, and from there the arm needs about 2 s,
+    so within a 4 s forecast they came in time on one prediction in three (10 of 25 planned,
+    grasps 3.6-4.0 s ahead). ``tests/data/box-slow-swing-prediction.npz`` holds such a
+    prediction (8 s, the blend predictor's), the arm's joints and mount and the body as the
+    planner had them. Its first 4 s alone plan nothing; the later seconds, searched with
+    their own budget, plan; searched with the first seconds' budget, they do not."""
+    d = np.load(Path(__file__).parent / "data" / "box-slow-swing-prediction.npz")
+    period = float(d["period_s"])
+    body = Body(float(d["radius"]), float(d["half_length"]), d["axis"], d["side"],
+                float(d["half_breadth"]), Turns(d["turn_times"], d["turn_rotations"], period),
+                seabed=d["seabed"])
+    k = int(np.searchsorted(d["times_s"], 4.0 + 1e-6))
+    whole = PredictedPath(d["times_s"], d["positions"], d["sigma"], period)
+    first = PredictedPath(d["times_s"][:k], d["positions"][:k], d["sigma"][:k], period)
+
+    def plan(path: PredictedPath, cfg: PlannerConfig) -> Plan | Counter:
+        return plan_grasp(path, float(d["now"]), arm, d["T_world_base"], d["q_now"], body, cfg)
+
+    cfg = PlannerConfig()
+    assert not isinstance(plan(first, cfg), Plan)
+    later = plan(whole, cfg)
+    assert isinstance(later, Plan) and later.t_grasp > float(d["now"]) + cfg.soon_s
+    assert not isinstance(plan(whole, cfg.model_copy(update={"soon_s": 10.0})), Plan)
 
 
 def test_too_short_a_horizon_cannot_be_timed(arm: ArmModel, T_world_base: np.ndarray) -> None:

@@ -32,7 +32,7 @@ UNKNOWN_SIGMA_M = 1.0  # before any error has been measured at a lead
 
 class PredictorSettings(Settings):
     predictor: str = Field(DEFAULT_MODEL, description=f"one of {', '.join(MODELS)}")
-    horizon_periods: float = Field(3.5, ge=1.0, description="published lead, capped at 4 s")
+    horizon_periods: float = Field(3.5, ge=1.0, description="published lead, capped at 8 s")
 
 
 class PredictorService(Service):

@@ -31,7 +31,7 @@ class Predictor:
     name = "base"
     min_measured = 0
 
-    def __init__(self, dt: float = 0.1, max_lead_s: float = 4.0, max_gap_s: float = 0.5) -> None:
+    def __init__(self, dt: float = 0.1, max_lead_s: float = 8.0, max_gap_s: float = 0.5) -> None:
         self.dt, self.max_gap_s = dt, max_gap_s
         self.leads = np.arange(int(round(max_lead_s / dt)) + 1) * dt
         self.tracker = ErrorTracker(dt, len(self.leads))
@@ -138,15 +138,18 @@ class HarmonicPredictor(Predictor):
 
 
 class BlendPredictor(Predictor):
-    """Lag regression and harmonic model, weighted per lead by their recent errors."""
+    """Lag regression and harmonic model, weighted per lead by their recent errors; beyond
+    ``lag_lead_s`` the harmonic model alone. A regression learns from a row only once its
+    farthest lead has been observed: leads of 8 s would hold back its first forecast, and
+    every change it learns, by 4 s more."""
 
     name = "blend"
     min_measured = 20
 
-    def __init__(self, **kw: float) -> None:
+    def __init__(self, lag_lead_s: float = 4.0, **kw: float) -> None:
         super().__init__(**kw)
-        self.lag = LagRegression(dt=self.dt, horizon=len(self.leads) - 1,
-                                 max_gap_s=self.max_gap_s)
+        self.lag = LagRegression(dt=self.dt, max_gap_s=self.max_gap_s,
+                                 horizon=min(len(self.leads) - 1, int(round(lag_lead_s / self.dt))))
         self.harmonic = HarmonicModel(half_omega=True, second_xy=True)
         # Short memory: the weights follow which model is better now.
         self.lag_errors = ErrorTracker(self.dt, len(self.leads), memory=20)
@@ -167,6 +170,8 @@ class BlendPredictor(Predictor):
         lag = self.lag.predict()
         t0 = lag[0] if lag is not None else t
         harmonic = self.harmonic.predict(t0 - t + self.leads)
+        if lag is not None and len(lag[1]) < len(self.leads):
+            lag = (t0, self._beyond(lag[1], harmonic))
         if harmonic is not None:
             self.harmonic_errors.keep(Forecast(t0, self.leads, harmonic, self.leads * np.nan, 0))
         if lag is not None:
@@ -193,6 +198,14 @@ class BlendPredictor(Predictor):
         # give it; the harmonic model fits whatever it is given.
         ready = bool(omega) and (self.lag.warm or self.harmonic.warm)
         return Forecast(t0, self.leads, positions, self.leads * np.nan, period, params, ready)
+
+    def _beyond(self, lag: np.ndarray, harmonic: np.ndarray | None) -> np.ndarray:
+        """The lag regression's positions (k, 3) on every lead (n, 3): the harmonic model's
+        beyond its own leads (its last position while there is none: no period is known
+        then, and nothing is published)."""
+        rest = harmonic[len(lag):] if harmonic is not None else np.repeat(
+            lag[-1:], len(self.leads) - len(lag), axis=0)
+        return np.vstack([lag, rest])
 
 
 def make_predictor(name: str, **kw: float) -> Predictor:
