@@ -38,9 +38,10 @@ from wavegrasp.wavetank.scenario import Scenario
 from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
 
 #: Recording seconds per attempt: up to 5 s waiting for an approval, mostly up to 4 s of
-#: approach (later only where no sooner grasp plans), the hold and the return to standby. The paper's experiment
-#: gives 6 s a trial, which its 20 trials, nearly all grasped at once, share; two trials
-#: of a scenario that needs its reattempts did not fit in 12 s (13 of 70 ran out).
+#: approach (later only where no sooner grasp plans), the hold and the return to standby.
+#: The paper's experiment gives 6 s a trial, which its 20 trials, nearly all grasped at
+#: once, share; two trials of a scenario that needs its reattempts did not fit in 12 s (13
+#: of 70 ran out).
 PER_ATTEMPT_S = 8.0
 
 
