@@ -95,6 +95,27 @@ def test_models_predict_a_period_ahead_with_calibrated_sigma(name: str) -> None:
     assert f.leads[-1] >= f.period_s
 
 
+def test_the_default_forecasts_8_s_ahead_and_its_regression_learns_as_soon_as_at_4() -> None:
+    """A slow sea's grasps may come round only past 4 s (the arm needs 2 s, the phases it can
+    take once a 2.2 s period): the blend forecasts 8 s ahead, the harmonic model alone past
+    its lag regression's 4 s, since a regression learns from a row only once its farthest
+    lead has come (8 s would hold back every change it learns by 4 s more)."""
+    t, p = stream(40.0, seed=2)
+    far, near = make_predictor("blend"), make_predictor("blend", max_lead_s=4.0)
+    warm_at, errors = {}, []
+    for ti, pi in zip(t, p, strict=True):
+        f = far.update(ti, pi)
+        near.update(ti, pi)
+        for name, model in (("far", far), ("near", near)):
+            if model.lag.warm:
+                warm_at.setdefault(name, ti)
+        if f is not None and f.warm and ti > 20 and f.t0 + 7.5 <= t[-1]:
+            errors.append(np.linalg.norm(f.at(f.t0 + 7.5) - motion(np.array([f.t0 + 7.5]))[0]))
+    assert f.leads[-1] == pytest.approx(8.0)
+    assert warm_at["far"] == warm_at["near"]
+    assert np.sqrt(np.mean(np.square(errors))) < 0.005
+
+
 def rmse_after(model, t: np.ndarray, p: np.ndarray, start: float) -> float:
     errors = []
     for ti, pi in zip(t, p, strict=True):
