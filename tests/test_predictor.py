@@ -8,8 +8,14 @@ import pytest
 from wavegrasp.predictor.forecast import ErrorTracker, Forecast
 from wavegrasp.predictor.harmonic import HarmonicModel
 from wavegrasp.predictor.lagreg import LagRegression
+from wavegrasp.predictor.main import UNKNOWN_SIGMA_M, PredictorService, PredictorSettings
 from wavegrasp.predictor.models import LinearPredictor, make_predictor
+from wavegrasp.runtime.bus import Delivery
+from wavegrasp.runtime.trace import new_header
+from wavegrasp.schemas import ObjectObservation, Vec3
 from wavegrasp.schemas.path import interpolate_path
+
+from conftest import Router
 
 OMEGA = 2 * np.pi / 1.2
 
@@ -114,6 +120,30 @@ def test_the_default_forecasts_8_s_ahead_and_its_regression_learns_as_soon_as_at
     assert f.leads[-1] == pytest.approx(8.0)
     assert warm_at["far"] == warm_at["near"]
     assert np.sqrt(np.mean(np.square(errors))) < 0.005
+
+
+def test_a_lead_whose_error_was_never_measured_is_published_as_unknown(router: Router) -> None:
+    """The first warm forecasts of a 1.2 s swing reach 3.5 periods ahead, their errors
+    measured only some way out: the leads past those are published with sigma 1 m, which no
+    planner takes (they were given the largest error measured sooner, and a grasp planned
+    6.6 s ahead on it, errors measured to 4 s, strayed 22 mm: random-7-004)."""
+    service = PredictorService(PredictorSettings.from_env("predictor", env=router.env))
+    try:
+        t, p = stream(14.0)
+        for ti, pi in zip(t, p, strict=True):
+            f = service.model.update(ti, pi)
+            if f is not None and f.warm:
+                break
+        obs = ObjectObservation(header=new_header("perception", 0, int(ti * 1e9)),
+                                centroid=Vec3.of(pi), radius_m=0.04, shape="sphere")
+        service.epoch_ns = 0
+        sigma = np.array([s.sigma for s in service.message(obs, Delivery("o", b"", "", None, 0,
+                                                                          0), f).samples])
+    finally:
+        service.bus.close()
+    measured = np.isfinite(f.sigma[:len(sigma)])
+    assert measured[1:].any() and not measured.all()
+    assert (sigma[~measured] == UNKNOWN_SIGMA_M).all() and (sigma[1:][measured[1:]] < 0.05).all()
 
 
 def rmse_after(model, t: np.ndarray, p: np.ndarray, start: float) -> float:
