@@ -168,8 +168,9 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     times = again + [t for t in times if t not in again]
     soon = [t for t in times if t <= now + cfg.soon_s]
     later = [t for t in times if t > now + cfg.soon_s]
+    first_later = later[0] if later else None
     for t_g in soon + later:
-        if t_g == (later or [None])[0]:  # the later times' own budget
+        if t_g == first_later:  # the later times' own budget
             tried, used = 0, 0
         if t_g < start + need or tried == cfg.max_times or used == cfg.max_candidates:
             continue
