@@ -36,11 +36,17 @@ class PredictorSettings(Settings):
     horizon_periods: float = Field(3.5, ge=1.0, description="published lead, capped at 8 s")
     guess_sigma_to_s: float = Field(4.0, description="a lead whose error has not been "
                                     "measured yet is given the largest measured sooner up to "
-                                    "this lead, and sigma 1 m (unknown) past it. Guessed to "
-                                    "8 s, a grasp planned 6.6 s ahead, errors measured to "
-                                    "about 4 s, strayed 22 mm (random-7-004); unknown from "
-                                    "the measured leads on, the first warm forecasts planned "
-                                    "far less (seed 167: 64 % of predictions, not 90 %)")
+                                    "this lead or one period past the farthest measured, "
+                                    "whichever is farther, and sigma 1 m (unknown) past it. "
+                                    "Guessed to 8 s, a grasp planned 6.6 s ahead, errors "
+                                    "measured to about 4 s, strayed 22 mm (random-7-004); "
+                                    "unknown from the measured leads on, the first warm "
+                                    "forecasts planned far less (seed 167: 64 % of "
+                                    "predictions, not 90 %). The period: the forecast comes "
+                                    "back to each phase once a period, and the phase the arm "
+                                    "can take in time may lie just past the measured leads "
+                                    "(random-173-025: 4 warm forecasts in a row planned "
+                                    "nothing, each plans 4.2-4.3 s ahead with it)")
 
 
 class PredictorService(Service):
@@ -75,10 +81,11 @@ class PredictorService(Service):
         """The forecast as samples on the recording clock, up to ``horizon_periods``."""
         last = min(len(f.leads), int(np.ceil(self.cfg.horizon_periods * f.period_s / (
             f.leads[1] - f.leads[0]))) + 1)
-        known = f.sigma[np.isfinite(f.sigma)]
+        measured = np.isfinite(f.sigma)
         guess = np.full(len(f.leads), UNKNOWN_SIGMA_M)
-        if len(known):
-            guess[f.leads <= self.cfg.guess_sigma_to_s] = known.max()
+        if measured.any():
+            reach = max(self.cfg.guess_sigma_to_s, f.leads[measured].max() + f.period_s)
+            guess[f.leads <= reach] = f.sigma[measured].max()
         sigma = np.where(np.isfinite(f.sigma), f.sigma, guess)
         t0_ns = self.epoch_ns + int(round(f.t0 * 1e9))
         samples = [PredictionSample(t_ns=t0_ns + int(round(lead * 1e9)), x=p[0], y=p[1], z=p[2],
