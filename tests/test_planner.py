@@ -36,6 +36,7 @@ from wavegrasp.planner.plan import (
     plan_grasp,
     points_back,
     quickest_equivalent,
+    stage_delays,
 )
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
 from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
@@ -1030,6 +1031,69 @@ def test_the_move_to_p_init_waits_until_the_object_is_out_of_its_way(arm: ArmMod
         assert np.diff(np.rint(plan.times * 1e9)).min() > 0
         waited += bool(np.allclose(plan.q[: int(0.1 / cfg.sample_dt_s)], q_standby))
     assert waited >= 3
+
+
+def box_swinging_at_the_arm(arm: ArmModel) -> tuple[np.ndarray, Body, object]:
+    """random-179-000: a 31 x 12 x 10 cm box 59 cm from the shoulder, swinging 27 cm
+    towards and away from it (2.29 s): its mount, the box and its predictions."""
+    pos, quat = arm_mount(paper_scenario(2, "buoy", mount=MountSpec(
+        position=(-0.593, -0.0194, 0.4493), yaw_offset_deg=-65.3)))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_quat(quat).as_matrix(), pos
+    turn = np.radians(69.6)
+    box = Body(0.048, 0.155, np.array([0.0, 0.0, 1.0]),
+               side=np.array([np.cos(turn), np.sin(turn), 0.0]), half_breadth=0.0576)
+    return T, box, swinging(np.array([-0.008, 0.0, 0.587]), (0.135, 0.0, 0.01), 2.29, 80)
+
+
+def test_the_last_grasp_is_tried_again_at_its_phase_between_the_samples(
+        arm: ArmModel) -> None:
+    """The swing brings the object back to the last plan's grasp a period later, but rarely
+    on one of a later prediction's samples (0.1 s apart): the hinted grasp is tried where
+    the path comes back to it, to a hundredth of a second, in the hint's orientation."""
+    T, box, path = box_swinging_at_the_arm(arm)
+    q = standby_poses(arm, T, path(0.0).positions, box)[1]
+    cfg = PlannerConfig()
+    first = next(p for now in 10.0 + np.arange(24) * 0.1
+                 if isinstance(p := plan_grasp(path(now), now, arm, T, q, box, cfg), Plan))
+    hint = Hint.of(first, path(first.t_start - cfg.start_delay_s))
+    later = first.t_grasp + 0.05  # this prediction's samples fall between the hint's phases
+    plan = plan_grasp(path(later), later, arm, T, q, box, cfg, hint)
+    assert isinstance(plan, Plan), plan
+    periods = (plan.t_grasp - first.t_grasp) / 2.29
+    assert abs(periods - round(periods)) * 2.29 < 0.006
+    assert np.allclose(plan.grasp_T_world[:3, :3], first.grasp_T_world[:3, :3])
+
+
+def test_a_box_swinging_at_the_arm_is_planned_for_nearly_every_idle_prediction(
+        arm: ArmModel) -> None:
+    """random-179-000's box planned 10 of 159 warm predictions: its grasps plan only in a
+    few hundredths of a second of its swing, which the samples of a later prediction
+    missed. Predictions every 0.05 s from the standby the planner probes first, each
+    grasp executed and the arm back at the standby 3 s after it: before, 4 plans and 24
+    predictions with none."""
+    T, box, path = box_swinging_at_the_arm(arm)
+    q = standby_poses(arm, T, path(0.0).positions, box)[0]
+    hint, now, plans, none = None, 10.0, 0, 0
+    while now < 40.0:
+        result = plan_grasp(path(now), now, arm, T, q, box, PlannerConfig(), hint)
+        if isinstance(result, Plan):
+            plans, hint, now = plans + 1, Hint.of(result, path(now)), result.t_grasp + 3.0
+        else:
+            none, now = none + 1, now + 0.05
+    assert plans >= 5
+    assert plans / (plans + none) >= 0.8
+
+
+def test_the_move_to_p_init_may_start_as_late_as_the_grasp_allows() -> None:
+    """An arm that starts at once for a grasp two periods ahead holds at P_init a period and
+    more while the object swings past it: the starts tried also end at the latest."""
+    delays = stage_delays(5.0, 2.29, 4)
+    assert delays[0] == 0.0 and delays.max() == pytest.approx(5.0)
+    assert np.all(np.diff(delays[:4]) > 0) and np.all(np.diff(delays[4:]) > 0)
+    assert delays[:4].max() < 2.29 and delays[4:].min() > 5.0 - 2.29
+    assert len(stage_delays(1.0, 2.29, 4)) == 4  # within a period: as before
+    assert np.array_equal(stage_delays(5.0, 2.29, 1), [0.0])
 
 
 def test_the_idle_arm_moves_to_a_standby_it_plans_from_not_the_first_guessed(
