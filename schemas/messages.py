@@ -260,6 +260,9 @@ class ArmState(Message):
     velocities: list[float] = Field(default_factory=list)
     jaw_opening_m: float = 0.0
     executing_plan_id: str | None = None
+    returning: bool = Field(False, description="moving back to its standby after an attempt "
+                            "(or to the one the planner asked for): not idle, though it may "
+                            "be at rest the moment the move begins")
 
 
 class Clock(Message):

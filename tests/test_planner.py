@@ -44,6 +44,7 @@ from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
     ArmStandby,
+    ArmState,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -408,6 +409,31 @@ def test_a_grasp_that_failed_is_not_tried_first_again(router: Router) -> None:
                 success=success, failure=None if success else "collision"),
                 Delivery("o", b"", "", None, 0, 0))
             assert (service._hint is hint) == kept
+    finally:
+        service.bus.close()
+
+
+def test_no_plan_is_made_while_the_arm_returns_to_its_standby(router: Router,
+                                                               arm: ArmModel) -> None:
+    """The return to the standby after an attempt starts at rest: planned on from where the
+    grasp left the arm, one prediction found nothing and asked for a standby move that the
+    returning arm ignored, and the planner waited out that move's 8 s while the trial ran
+    out (random-191-000). An arm that says it is returning is not idle, though at rest."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        def at_rest(returning: bool) -> None:
+            service.on_arm_state(ArmState(
+                header=new_header("sim", 0, 0), joint_names=list(arm.joint_names),
+                positions=arm.q_home.tolist(), velocities=[0.0] * len(arm.joint_names),
+                returning=returning), Delivery("a", b"", "", None, 0, 0))
+
+        at_rest(True)
+        service.plan(*delivered(prediction(10.0), 10.0))
+        assert service.counters["skipped: executing"] == 1
+        at_rest(False)  # planned on: this service has no mount for the arm yet
+        with pytest.raises(ValueError, match="no transform to the arm's mount"):
+            service.plan(*delivered(prediction(10.0), 10.0))
+        assert service.counters["skipped: executing"] == 1
     finally:
         service.bus.close()
 

@@ -88,6 +88,7 @@ def execute(arm: ArmModel, T_world_base: np.ndarray, planned: tuple[Plan, Predic
                 jaw.append((t, world.jaw_opening()))
             if result is not None:
                 assert not executor.attempt
+                assert executor.returning and executor.busy  # heads back to its standby
                 return result
         raise AssertionError("the attempt was never judged")
     finally:

@@ -228,8 +228,11 @@ class PlannerService(Service):
         if missing:
             raise ValueError(f"arm_state lacks joints {', '.join(missing)}")
         self.q_now = np.array([by_name[n] for n in self.arm.joint_names])
-        # A plan starts from rest: none while the arm executes or returns to standby.
-        self.arm_moving = msg.executing_plan_id is not None or (
+        # A plan starts from rest: none while the arm executes or returns to standby. Its
+        # return starts at rest: planned on from where the grasp left it, one prediction
+        # found nothing and asked for a standby move the returning arm ignored, and the
+        # planner waited out that move's 8 s while the trial ran out (random-191-000).
+        self.arm_moving = msg.executing_plan_id is not None or msg.returning or (
             bool(msg.velocities) and max(abs(v) for v in msg.velocities) > 0.02)
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:

@@ -132,6 +132,11 @@ class Executor:
         """Executing an attempt or returning to standby."""
         return self.attempt is not None or self._return is not None
 
+    @property
+    def returning(self) -> bool:
+        """Moving to a standby pose, after an attempt or as the planner asked."""
+        return self._return is not None
+
     def start(self, attempt: Attempt) -> None:
         if self.busy:
             raise ValueError(f"plan {attempt.plan_id}: another is executing")

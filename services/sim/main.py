@@ -412,7 +412,8 @@ class SimService(Service):
             header=new_header(self.name, frame_seq, int(round(self.world.time_s * 1e9))),
             joint_names=list(self.arm.joint_names), positions=q.tolist(),
             velocities=qd.tolist(), jaw_opening_m=self.world.jaw_opening(),
-            executing_plan_id=self._executing))
+            executing_plan_id=self._executing,
+            returning=self.executor is not None and self.executor.returning))
         self.note_state()
 
     def on_stop(self) -> None:
