@@ -122,8 +122,10 @@ class Plan:
     candidates: list[np.ndarray] = field(default_factory=list)
 
 
-#: How finely :func:`_again` looks between the prediction's samples, seconds.
+#: How finely :func:`_again` looks between the prediction's samples, and how far either
+#: side of the time nearest the hint it tries, seconds.
 AGAIN_STEP_S = 0.01
+AGAIN_SPAN_S = 0.04
 
 
 @dataclass(frozen=True)
@@ -168,8 +170,39 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     if not times and (path.times_s >= earliest).any():
         rejected["prediction too uncertain"] += 1
         return rejected
-    again = _again(path, times, hint) if hint is not None and times else []
-    times = again + [t for t in times if t not in again]
+
+    def attempt(t_g: float, R: np.ndarray, p_f: np.ndarray, d: np.ndarray, here: Body,
+                outwards: np.ndarray, towards: np.ndarray) -> Plan | tuple[str, float] | None:
+        """The grasp at ``t_g`` in orientation ``R``: the plan, why not, or None where a
+        cheap rejection refused it (not a try)."""
+        T_grasp = np.eye(4)
+        T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
+        reason = cheap_rejection(arm, R, outwards, here, cfg) or (
+            "collision" if hand_hits(arm, T_grasp, here) else None)
+        if reason:
+            rejected[reason] += 1
+            return None
+        candidates.append(T_grasp)
+        result = _candidate(path, now, t_g, T_grasp, offset_direction(d, R[:, 2], towards), d,
+                            arm, T_world_base, q_now, body, cfg)
+        if isinstance(result, Plan):
+            result.rejected, result.candidates = rejected, candidates
+            return result
+        rejected[result[0]] += 1
+        return result
+
+    # The last plan's grasp first, in its own orientation, where the path comes back to it.
+    hint_need = 0.0
+    for t_g in _again(path, times, hint) if hint is not None and times else []:
+        if t_g < start + hint_need:
+            continue
+        p_f, d, here = path.at(t_g), motion_direction(path, t_g), body.at(t_g)
+        outwards, towards, _ = tool_orientations(p_f, d, shoulder, here)
+        result = attempt(t_g, hint.T_grasp[:3, :3], p_f, d, here, outwards, towards)
+        if isinstance(result, Plan):
+            return result
+        if result is not None and result[0] == "cannot be timed":
+            hint_need = max(hint_need, result[1])
     soon = [t for t in times if t <= now + cfg.soon_s]
     later = [t for t in times if t > now + cfg.soon_s]
     first_later = later[0] if later else None
@@ -185,33 +218,18 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
         quickest, tried_here = np.inf, 0
         here = body.at(t_g)  # as it will be turned then
         outwards, towards, frames = tool_orientations(p_f, d, shoulder, here)
-        if t_g in again:
-            frames = [hint.T_grasp[:3, :3], *frames]
         for R in frames:
-            T_grasp = np.eye(4)
-            T_grasp[:3, :3], T_grasp[:3, 3] = R, p_f
-            # Cheap rejections first; they do not count as tries.
-            reason = cheap_rejection(arm, R, outwards, here, cfg)
-            if reason:
-                rejected[reason] += 1
-                continue
-            if hand_hits(arm, T_grasp, here):
-                rejected["collision"] += 1
-                continue
             if tried_here == cfg.max_orientations or used == cfg.max_candidates:
                 break
+            result = attempt(t_g, R, p_f, d, here, outwards, towards)
+            if result is None:
+                continue
+            if isinstance(result, Plan):
+                return result
             tried_here += 1
             tried += tried_here == 1
-            n = offset_direction(d, R[:, 2], towards)
-            candidates.append(T_grasp)
             used += 1
-            result = _candidate(path, now, t_g, T_grasp, n, d, arm, T_world_base, q_now, body,
-                                cfg)
-            if isinstance(result, Plan):
-                result.rejected, result.candidates = rejected, candidates
-                return result
             reason, needed = result
-            rejected[reason] += 1
             # Only when every pose at this time was too slow does a time this soon fail for
             # all: a pose that failed otherwise might have been quicker.
             quickest = min(quickest, needed if reason == "cannot be timed" else 0.0)
@@ -223,14 +241,18 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
 
 
 def _again(path: PredictedPath, times: list[float], hint: Hint) -> list[float]:
-    """The times, soonest first, at which the object comes back nearest where and as it
-    moved at the ``hint``'s grasp, one per period, at most two (a centimetre of position
-    weighs as much as 6 degrees of direction): the last plan's grasp time comes nearer with
-    each prediction until the arm can no longer make it, and then the next period's is the
-    one. Each is found among ``times`` (the prediction's samples), then between its
-    neighbours in steps of ``AGAIN_STEP_S``: a grasp that plans in only a few hundredths
-    of a second of the swing is missed by samples a tenth apart (random-179-000's box
-    planned 10 of 159 predictions)."""
+    """Times at which to try the ``hint``'s grasp again: for each period, soonest first,
+    the time the object comes back nearest where and as it moved then (a centimetre of
+    position weighs as much as 6 degrees of direction), then the times either side of it
+    within ``AGAIN_SPAN_S``, nearest first, in steps of ``AGAIN_STEP_S``. The swing brings
+    the object back a period later, but rarely on one of the prediction's samples, and
+    rarely to within a centimetre of where it was: a grasp that plans in only a few
+    hundredths of a second of the swing is missed by samples a tenth apart (random-179-000's
+    box planned 10 of 159 predictions), and by the time nearest the hint where the path
+    comes back 2-3 cm from it (random-193-015's box: 6 predictions in a row planned none;
+    the hint's grasp plans 0.03-0.05 s before the nearest time, in two of three periods).
+    The last plan's grasp time comes nearer with each prediction until the arm can no longer
+    make it, and then the next period's is the one."""
     def miss(t: np.ndarray) -> np.ndarray:
         d = np.array([motion_direction(path, x) for x in t])
         return (np.linalg.norm(path.at(t) - hint.T_grasp[:3, 3], axis=1)
@@ -247,9 +269,10 @@ def _again(path: PredictedPath, times: list[float], hint: Hint) -> list[float]:
             near = grid[i] + np.arange(-step, step + 1e-9, AGAIN_STEP_S)
             near = near[(near >= grid.min()) & (near <= path.times_s[-1])]
             best.append(float(near[np.argmin(miss(near))]))
-        if len(best) == 2:
-            break
-    return sorted(best)
+    side = AGAIN_STEP_S * np.arange(1, round(AGAIN_SPAN_S / AGAIN_STEP_S) + 1)
+    offsets = np.concatenate([[0.0], np.ravel(np.column_stack([-side, side]))])
+    return [float(t + o) for t in sorted(best) for o in offsets
+            if grid.min() <= t + o <= grid.max()]
 
 
 def tool_orientations(p_f: np.ndarray, d: np.ndarray, shoulder: np.ndarray, body: Body
