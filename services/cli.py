@@ -24,6 +24,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "viewer": ("wavegrasp.ops.viewer", "rerun's web viewer, fed live by the recorder"),
     "latency": ("wavegrasp.ops.latency", "per-hop and end-to-end latency of a run, from its "
                 "traces"),
+    "replan": ("wavegrasp.ops.replan", "the planner of today's code again on a run's own "
+               "messages: what it plans, prediction by prediction"),
     "faults": ("wavegrasp.ops.faults", "run the pipeline, inject faults (bad input, crashes, "
                "bad files) and report what survived"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),

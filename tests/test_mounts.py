@@ -60,3 +60,10 @@ def test_an_arm_mounted_elsewhere_grasps(tmp_path: Path, name: str, obj: str, be
         assert counters["planner"].get("standby moves", 0) >= 1, counters["planner"]
         assert counters["sim"].get("standby moves", 0) >= 1, counters["sim"]
     assert any(o["success"] for o in outcomes), outcomes
+    # Replayed on the run's own messages, the planner plans as it did in the run.
+    replayed = subprocess.run(wavegrasp_cmd("replan", str(out)),
+                              capture_output=True, text=True, timeout=300)
+    assert replayed.returncode == 0, replayed.stderr[-3000:]
+    row = replayed.stdout.splitlines()[-1].split("|")
+    planner = summary["services"]["planner"]["counters"]
+    assert [int(row[3]), int(row[4])] == [planner.get("plans", 0), planner.get("no plan", 0)]
