@@ -1176,6 +1176,42 @@ def test_the_idle_arm_moves_to_a_standby_it_plans_from_not_the_first_guessed(
         service.bus.close()
 
 
+def test_a_forecast_that_trusts_no_lead_tests_no_standby(router: Router,
+                                                         arm: ArmModel) -> None:
+    """A predictor warming up may not have measured any of its errors yet: every lead of its
+    forecast is unknown (sigma 1 m) and nothing plans from any pose. Taken as tests, such
+    forecasts tried every standby pose and sent random-197-006's arm to the first-ranked
+    one, from which its first warm predictions planned nothing. They test no pose now: the
+    arm stays until a forecast trusts some lead, and then goes to the pose that plans."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        T, path, poses, planned = sphere_by_the_shoulder(service, arm)
+        bad, good = poses[planned.index(0)], poses[planned.index(3)]
+        others = [q for q in poses if q is not bad and q is not good]
+        service.standby(T, 0)
+        service._standby = (*service._standby[:3], [bad, good, *others])
+
+        def unknown(now: float) -> PredictedPath:
+            known = path(now)
+            return PredictedPath(known.times_s, known.positions,
+                                 np.full(len(known.times_s), 1.0), known.period_s)
+
+        now = 10.0
+        for _ in range(2 * (len(poses) + 1)):
+            service.plan(*delivered(unknown(now), now, warm=False))
+            now += 0.25
+        assert service.counters["standby tests: prediction too uncertain"] > len(poses)
+        assert not service.counters["standby tests"], told(service)
+        assert not service.counters["standby moves"], told(service)
+        while not service.counters["standby moves"] and now < 20.0:
+            service.plan(*delivered(path(now), now, warm=False))
+            now += 0.25
+        assert service.counters["standby moves"] == 1, told(service)
+        np.testing.assert_allclose(service.standby(T, int(now * 1e9)), good)
+    finally:
+        service.bus.close()
+
+
 def test_after_a_grasp_from_where_it_was_the_arm_returns_there_not_to_an_untested_standby(
         router: Router, arm: ArmModel) -> None:
     """A grasp planned from the pose the arm was in (its home) carried the first-ranked
