@@ -1073,18 +1073,24 @@ def box_swinging_at_the_arm(arm: ArmModel) -> tuple[np.ndarray, Body, object]:
     return T, box, swinging(np.array([-0.008, 0.0, 0.587]), (0.135, 0.0, 0.01), 2.29, 80)
 
 
+def box_grasped_once(arm: ArmModel):  # noqa: ANN201
+    """:func:`box_swinging_at_the_arm`, the standby pose it is planned from, the planner's
+    settings, the first plan from there and the hint it leaves."""
+    T, box, path = box_swinging_at_the_arm(arm)
+    q = standby_poses(arm, T, path(0.0).positions, box)[1]
+    cfg = PlannerConfig()
+    first = next(p for now in 10.0 + np.arange(24) * 0.1
+                 if isinstance(p := plan_grasp(path(now), now, arm, T, q, box, cfg), Plan))
+    return T, box, path, q, cfg, first, Hint.of(first, path(first.t_start - cfg.start_delay_s))
+
+
 def test_the_last_grasp_is_tried_again_at_its_phase_between_the_samples(
         arm: ArmModel) -> None:
     """The swing brings the object back to the last plan's grasp a period later, but rarely
     on one of a later prediction's samples (0.1 s apart): the hinted grasp is tried where
     the path comes back to it, to a hundredth of a second, and either side of that within
     AGAIN_SPAN_S, in the hint's orientation."""
-    T, box, path = box_swinging_at_the_arm(arm)
-    q = standby_poses(arm, T, path(0.0).positions, box)[1]
-    cfg = PlannerConfig()
-    first = next(p for now in 10.0 + np.arange(24) * 0.1
-                 if isinstance(p := plan_grasp(path(now), now, arm, T, q, box, cfg), Plan))
-    hint = Hint.of(first, path(first.t_start - cfg.start_delay_s))
+    T, box, path, q, cfg, first, hint = box_grasped_once(arm)
     later = first.t_grasp + 0.05  # this prediction's samples fall between the hint's phases
     plan = plan_grasp(path(later), later, arm, T, q, box, cfg, hint)
     assert isinstance(plan, Plan), plan
@@ -1102,12 +1108,7 @@ def test_the_last_grasp_is_tried_either_side_of_where_a_drifting_swing_comes_bac
     hundredths of a second in which the grasp plans (random-193-015's box: 6 predictions in
     a row planned nothing). The times either side are tried too: before, none of these
     predictions planned."""
-    T, box, path = box_swinging_at_the_arm(arm)
-    q = standby_poses(arm, T, path(0.0).positions, box)[1]
-    cfg = PlannerConfig()
-    first = next(p for now in 10.0 + np.arange(24) * 0.1
-                 if isinstance(p := plan_grasp(path(now), now, arm, T, q, box, cfg), Plan))
-    hint = Hint.of(first, path(first.t_start - cfg.start_delay_s))
+    T, box, path, q, cfg, first, hint = box_grasped_once(arm)
     for axis, shift in ((0, 0.01), (0, 0.03), (1, 0.02)):
         rest = np.array([-0.008, 0.0, 0.587])
         rest[axis] += shift
