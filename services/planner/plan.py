@@ -270,8 +270,8 @@ def _again(path: PredictedPath, times: list[float], hint: Hint) -> list[float]:
             near = near[(near >= grid.min()) & (near <= path.times_s[-1])]
             best.append(float(near[np.argmin(miss(near))]))
     side = AGAIN_STEP_S * np.arange(1, round(AGAIN_SPAN_S / AGAIN_STEP_S) + 1)
-    offsets = np.concatenate([[0.0], np.ravel(np.column_stack([-side, side]))])
-    return [float(t + o) for t in sorted(best) for o in offsets
+    shifts = np.concatenate([[0.0], np.ravel(np.column_stack([-side, side]))])
+    return [float(t + o) for t in sorted(best) for o in shifts
             if grid.min() <= t + o <= grid.max()]
 
 
