@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import queue
 import signal
@@ -52,6 +53,7 @@ BAD_INPUTS: dict[str, bytes] = {
 KILL_ORDER = ["perception", "predictor", "planner", "gate", "sim", "recorder", "player",
               "router"]
 BACK_WITHIN_S = 5.0
+WAIT_BACK_S = 15.0  # the longest a killed service is waited for before the next kill
 FRAMES_KEY = "trisect/points"
 
 
@@ -67,6 +69,21 @@ class Fault:
     lost: str = ""
     lost_s: float | None = None  # the recorder: seconds of written data its kill lost
     detail: str = ""
+
+
+@dataclass
+class Down:
+    """A killed service's time down, monotonic seconds; ``back`` None while it is not back
+    (it may never be: the run can end first)."""
+
+    name: str
+    fault: Fault
+    died: float
+    back: float | None = None
+
+    def until(self) -> float:
+        """When it came back, or the longest the injector waits for it."""
+        return self.back if self.back is not None else self.died + WAIT_BACK_S
 
 
 @dataclass
@@ -109,7 +126,7 @@ class Injector:
         self.watch = Watch()
         self.bus: Bus | None = None
         self.sent: dict[tuple[str, str], int] = defaultdict(int)  # (service, key) -> payloads
-        self.down: list[tuple[str, float, float]] = []  # (service, died, back) monotonic
+        self.down: list[Down] = []  # one per kill, made as it is killed
         self.counted: dict[str, dict[str, int]] = {}  # service -> bad per key, after the input
 
     def now_s(self) -> float:
@@ -170,18 +187,17 @@ class Injector:
         if proc is None or proc.poll() is not None:
             return
         fault = Fault("SIGKILL", name, self.now_s())
+        down = Down(name, fault, time.monotonic())
         self.faults.append(fault)
-        died = time.monotonic()
+        self.down.append(down)
         os.kill(proc.pid, signal.SIGKILL)
-        deadline = died + 15.0
-        while time.monotonic() < deadline:
+        while time.monotonic() < down.until() and not launcher.interrupted.is_set():
             history = launcher.restarts.get(name) or []
             if history and history[-1].back_s is not None:
                 fault.back_after_s = round(history[-1].back_s - history[-1].died_s, 2)
+                down.back = down.died + fault.back_after_s
                 break
             self.pump(0.1)
-        back = died + (fault.back_after_s if fault.back_after_s is not None else 15.0)
-        self.down.append((name, died, back))
         self.pump(1.0)
 
     def settle(self, summary: dict) -> None:
@@ -193,12 +209,14 @@ class Injector:
                 fault.survived = not missed and summary["ended"] == "finished"
                 fault.lost = f"{sum(self.sent.values())} sent, " + (
                     "all counted as bad" if not missed else f"not counted: {', '.join(missed)}")
-        for (name, died, back), fault in zip(self.down, [f for f in self.faults
-                                                          if f.kind == "SIGKILL"], strict=True):
+        for down in self.down:
+            name, fault = down.name, down.fault
             fault.survived = (fault.back_after_s is not None
                               and fault.back_after_s <= BACK_WITHIN_S
                               and summary["ended"] == "finished")
-            frames = self.watch.frames_between(died, back + 1.0)
+            if down.back is None:
+                fault.detail = "not back when the run ended"
+            frames = self.watch.frames_between(down.died, down.until() + 1.0)
             acked = self.watch.acks.get("perception" if name == "router" else name, set())
             missing = [seq for seq in frames if seq not in acked]
             fault.lost = f"{len(missing)} of {len(frames)} frames not acknowledged"
@@ -208,9 +226,9 @@ class Injector:
                 fault.lost_s, text = recorded_loss(self.run.out, self.watch.acks["recorder"],
                                                    summary["player"].get("frames", 0))
                 fault.lost += f"; {text}"
-        approved = [t for t in self.watch.gos for name, died, back in self.down
-                    if name in ("perception", "predictor", "planner", "router")
-                    and died + 0.1 < t < back]
+        approved = [t for t in self.watch.gos for down in self.down
+                    if down.name in ("perception", "predictor", "planner", "router")
+                    and down.died + 0.1 < t < (down.back or math.inf)]
         self.faults.append(Fault(
             "gate while upstream down", "gate", 0.0, survived=not approved,
             lost=f"{len(approved)} plans approved while an upstream service was down"))

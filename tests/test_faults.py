@@ -8,7 +8,8 @@ import json
 import subprocess
 from pathlib import Path
 
-from wavegrasp.ops.faults import BACK_WITHIN_S, KILL_ORDER
+from wavegrasp.ops import launcher as up
+from wavegrasp.ops.faults import BACK_WITHIN_S, KILL_ORDER, Down, Fault, Injector
 
 from conftest import make_recording, wavegrasp_cmd
 
@@ -44,3 +45,22 @@ def test_every_fault_is_survived(tmp_path: Path) -> None:
     # had written, at most a second was lost.
     assert summary["files"] == ["run-1.mcap", "run.mcap"]
     assert killed["recorder"]["lost_s"] <= 1.0, killed["recorder"]
+
+
+def test_a_service_not_back_when_the_run_ends_is_judged_lost(tmp_path: Path) -> None:
+    """On a slow machine the run can end while a killed service is still down: that kill
+    is not survived, the plans approved meanwhile count against the gate, and the report is
+    still written (it was a crash of the tool itself: a kill without its time down)."""
+    recording = Path(__file__).parents[1] / "recordings" / "wave1-buoy-5s.mcap"
+    run = up.prepare(up.parse_args([str(recording), "--out", str(tmp_path / "run")]))
+    injector = Injector(run, ["planner", "sim"], 0.5)
+    back = Fault("SIGKILL", "planner", 1.0, back_after_s=0.9)
+    lost = Fault("SIGKILL", "sim", 3.0)
+    injector.faults += [back, lost]
+    injector.down += [Down("planner", back, 100.0, 100.9), Down("sim", lost, 102.0)]
+    injector.watch.gos.append(100.5)  # while the planner was down
+    injector.settle({"ended": "finished", "player": {"frames": 50}})
+    assert back.survived and not lost.survived
+    assert lost.detail == "not back when the run ended"
+    (gate,) = [f for f in injector.faults if f.kind == "gate while upstream down"]
+    assert not gate.survived and gate.lost.startswith("1 plans approved"), gate
