@@ -446,17 +446,30 @@ class PlannerService(Service):
         return move
 
     def plans_from(self, q: np.ndarray, path: PredictedPath, now_ns: int,
-                   T_world_base: np.ndarray) -> bool | None:
+                   T_world_base: np.ndarray) -> bool:
         """Does a grasp plan from the arm at ``q`` (radians, shape (n,)) on ``path``? If so,
-        it is the grasp tried first on the next prediction. None where the prediction trusts
-        no grasp time at all (a predictor that has measured none of its errors yet): that
-        says nothing of the pose."""
-        result = plan_grasp(path, now_ns * 1e-9, self.arm, T_world_base, q,
-                            self.turning(path.period_s), self.config)
+        it is the grasp tried first on the next prediction. Where the prediction trusts no
+        grasp time at all (a predictor that has measured none of its errors yet), it is
+        taken as trusting the leads searched first (``soon_s``): the question is what the
+        arm reaches from ``q``, and the forecast still says where the object goes. Taken as
+        "nothing plans", such forecasts tried every pose and sent random-197-006's arm to the
+        first-ranked one; waiting for a trusted forecast, the arm tested its poses only once
+        the predictor was warm, and its first five warm predictions planned nothing; trusted
+        at every lead, they chose a pose from which only grasps 5 s ahead planned."""
+        now_s = now_ns * 1e-9
+
+        def plan(path: PredictedPath) -> Plan | Counter:
+            return plan_grasp(path, now_s, self.arm, T_world_base, q,
+                              self.turning(path.period_s), self.config)
+
+        result = plan(path)
+        if not isinstance(result, Plan) and set(result) == {"prediction too uncertain"}:
+            soon = path.times_s <= now_s + self.config.soon_s
+            result = plan(replace(path, sigma=np.where(soon, 0.0, np.inf)))
         if isinstance(result, Plan):
             self._hint = Hint.of(result, path)
             return True
-        return None if set(result) == {"prediction too uncertain"} else False
+        return False
 
     def standby_plans(self, path: PredictedPath, now_ns: int, T_world_base: np.ndarray
                       ) -> bool:
@@ -466,19 +479,12 @@ class PlannerService(Service):
         there). One plan per prediction. The ranking of :func:`standby_poses` guesses from
         the grasps' joints alone: random-113-034's first pose planned none of 43 warm
         predictions, its second all of them, and the arm moved 2.9 s to the first and
-        waited there 2.2 s before the probes found the second. A prediction that trusts no
-        grasp time tests no pose: the arm waits for one that does (random-197-006: six
-        poses "tested" on forecasts whose errors were all still unknown, the arm went to
-        the first, and its first warm predictions planned nothing until a probe moved it)."""
+        waited there 2.2 s before the probes found the second."""
         if self._standby is None or self._accepted == self._choice:
             return True
         poses = self._standby[3]
-        planned = self.plans_from(poses[self._choice], path, now_ns, T_world_base)
-        if planned is None:
-            self.counters["standby tests: prediction too uncertain"] += 1
-            return False
         self.counters["standby tests"] += 1
-        if planned:
+        if self.plans_from(poses[self._choice], path, now_ns, T_world_base):
             self._accepted = self._choice
             return True
         self._tried.add(self._choice)
