@@ -48,7 +48,6 @@ from wavegrasp.schemas import (
 from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
-from wavegrasp.wavetank.camera import object_mesh
 from wavegrasp.wavetank.scenario import ObjectModel
 
 log = logging.getLogger("wavegrasp.sim")
@@ -203,8 +202,13 @@ class SimService(Service):
         # A sphere or cylinder is PyBullet's own (exact, and quicker to collide); another
         # shape, its mesh's hull. A copy: a view would keep open3d's buffer alive to the end,
         # and open3d then ends the process with exit code 1 over the "leak".
-        vertices = None if spec.shape in ("sphere", "cylinder") else np.array(
-            object_mesh(spec).vertex.positions.numpy(), dtype=float)
+        vertices = None
+        if spec.shape not in ("sphere", "cylinder"):
+            # Here, not at the top: open3d's import is half the sim's start (1 s of 2.1 s
+            # measured), and a killed sim is back sooner without it (`wavegrasp faults`).
+            from wavegrasp.wavetank.camera import object_mesh
+
+            vertices = np.array(object_mesh(spec).vertex.positions.numpy(), dtype=float)
         self.shape = ObjectShape(spec.shape, spec.radius, spec.length, vertices=vertices,
                                  tether_m=spec.attach_offset)
         self._truth_shape = True
