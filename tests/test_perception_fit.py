@@ -23,7 +23,7 @@ from wavegrasp.perception.fit import (
     fit_sphere,
     wider_than_seen,
 )
-from wavegrasp.perception.pipeline import learnt_shape
+from wavegrasp.perception.pipeline import PerceptionConfig, learnt_shape
 from wavegrasp.perception.revolution import end_faces, fit_revolution, normals
 from wavegrasp.perception.shape import fit_shape
 
@@ -222,6 +222,58 @@ def test_a_solid_of_revolution_seen_longer_than_it_was_learnt_is_not_refused() -
         fit = fit_revolution(points, viewpoint, learnt)  # raised "(a partial view)"
         assert fit.length > learnt.length
         assert np.linalg.norm(fit.centre - centre) < 0.004, fit.centre - centre
+
+
+def test_a_view_of_part_of_an_outline_is_placed_where_it_fits_the_learnt_one() -> None:
+    """random-199-007: an 8 x 9 cm ellipsoid seen from above showed less than its learnt
+    length in half its frames, none with a flat end, and each was refused as a partial view
+    (304 of 600 frames). Where the seen part of the outline fits the learnt one places it."""
+    rng = np.random.default_rng(11)
+    radius, half_length = 0.04, 0.05
+    learnt = learnt_shape([fit_revolution(*ellipsoid_cloud(rng, radius, half_length)[:2])
+                           for _ in range(9)])
+    errors = []
+    for _ in range(10):
+        points, viewpoint, centre = ellipsoid_cloud(rng, radius, half_length)
+        part = points[points[:, 2] > centre[2] - 0.2 * half_length]
+        fit = fit_revolution(part, viewpoint, learnt)  # raised "(a partial view)"
+        errors.append(fit.centre - centre)
+        assert fit.sigma < 0.005
+    assert np.sqrt(np.mean(np.sum(np.square(errors), axis=1))) < 0.003
+
+
+def test_a_straight_wall_seen_without_its_ends_is_too_uncertain_to_place() -> None:
+    """A cylinder's wall fits its learnt outline anywhere along the straight body: the
+    centre such a view gives is too uncertain for perception to report (its sigma above
+    ``max_sigma_m``), not placed at whichever shift the noise favours."""
+    rng = np.random.default_rng(12)
+    radius, length = 0.04, 0.24
+
+    def view():
+        points, viewpoint, centre, axis = cylinder_cloud(rng, radius, length, max_tilt=0.0)
+        return points, viewpoint, centre
+
+    learnt = learnt_shape([fit_revolution(*view()[:2]) for _ in range(9)])
+    for _ in range(5):
+        points, viewpoint, centre = view()
+        middle = points[np.abs(points[:, 2] - centre[2]) < 0.25 * length]
+        fit = fit_revolution(middle, viewpoint, learnt)
+        assert fit.sigma > PerceptionConfig().max_sigma_m, np.linalg.norm(fit.centre - centre)
+
+
+def test_a_solid_of_revolution_that_turned_far_between_frames_is_fitted_from_its_points() -> None:
+    """random-199-028: a 28 cm bottle in a 33 cm sea seen at 5 Hz turned 41 degrees between
+    frames; fitted from the last frame's axis, the outline ended 6 mm off the points and the
+    frame was refused, as were half of the recording's. From the points' own longest
+    direction it is placed as well as any."""
+    z = np.load(Path(__file__).parent / "data" / "bottle-turned-between-frames.npz")
+    prior = ShapeFit("revolution", z["prior_centre"], z["prior_axis"], float(z["radius"]),
+                     float(z["length"]), float(z["rms"]), np.ones(1, bool), 0.001,
+                     offset=float(z["offset"]), outline=z["outline"])
+    assert np.degrees(np.arccos(prior.axis @ z["true_axis"])) > 40
+    fit = fit_revolution(z["points"].astype(float), z["eye"], prior)
+    assert np.linalg.norm(fit.centre - z["centre"]) < 0.002
+    assert np.degrees(np.arccos(abs(fit.axis @ z["true_axis"]))) < 3
 
 
 def test_check_points_names_the_problem() -> None:

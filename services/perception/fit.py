@@ -52,6 +52,9 @@ class ShapeFit:
     #: metres along ``axis`` from the volume centre to the middle of its length: a bottle's
     #: neck moves its centre towards the body, so its ends are not equally far from it
     offset: float = 0.0
+    #: a solid of revolution: shape (m, 2), metres, its outline: heights along ``axis`` from
+    #: the volume centre (ascending) and the radius at each
+    outline: np.ndarray | None = None
 
     def far_off(self, rms: float, ratio: float) -> bool:
         """Whether a fit ``rms`` metres off its points is far off next to this (learnt) fit:

@@ -391,12 +391,14 @@ def learnt_revolution(fits: list[ShapeFit], best: ShapeFit) -> ShapeFit:
     """A solid of revolution's length, the upper quartile of the fits' (:func:`_upper`: a
     seen outline falls short of a hidden end, never long but by noise), and where along
     it the volume centre lies (``offset``), the median over the fits that saw about that
-    length: with them a view that sees only one end's flat face still places the centre
+    length, and the outline of the one of them nearest its points: with them a view that
+    sees only one end's flat face, or a part of the outline, still places the centre
     (:func:`~wavegrasp.perception.revolution.fit_revolution`)."""
     length = _upper([f.length for f in fits])
     whole = [f for f in fits if same_size(f.length, length)]
     offset = float(np.median([f.offset for f in whole])) if whole else best.offset
-    return replace(best, length=length, offset=offset)
+    outline = min(whole, key=lambda f: f.rms).outline if whole else best.outline
+    return replace(best, length=length, offset=offset, outline=outline)
 
 
 #: learnt_box: a seen extent is short by up to a row of the face along it, long only by noise.
