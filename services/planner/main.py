@@ -502,7 +502,7 @@ class PlannerService(Service):
         earlier is still under way. A forecast that trusts no grasp time says nothing of the
         pose: it starts no probes of the others (:meth:`probe_standby`). The paper's linear
         predictor trusts none ever, and its arm tried pose after pose, 0.13 s of planning
-        each, a third of the paper experiment's planning."""
+        each: 27 of the 37 s `wavegrasp replan` spent on one of its runs."""
         now_ns = msg.header.stamp_ns
         if set(rejected) == {"prediction too uncertain"}:
             self._failing_since_ns = None
