@@ -1,10 +1,11 @@
 """``wavegrasp eval``: the paper's experiment over the full pipeline.
 
-For every predictor × wave condition × object, one lockstep ``wavegrasp up`` (every service a
-process, over zenoh) runs ``--trials`` trials one after the other on a long wave-tank
+For every predictor × sea × wave condition × object, one lockstep ``wavegrasp up`` (every
+service a process, over zenoh) runs ``--trials`` trials one after the other on a long wave-tank
 recording: each trial starts where the previous one ended, with the arm back at standby, and
 ends at a success or after ``--attempts`` attempts (or when no plan is approved for 5 s).
-Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. Each run's
+Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. ``--seas``: the
+paper's regular waves and/or JONSWAP seas of the same significant height and peak period. Each run's
 ``run.mcap`` holds everything but the camera clouds, which are in the cached recording.
 ``--jobs`` runs go side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
 """
@@ -26,6 +27,7 @@ from tqdm import tqdm
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.body import OBJECTS
+from wavegrasp.wavetank.suite import SEAS
 from wavegrasp.wavetank.waves import TABLE_I
 
 #: Recording seconds before the first trial (the predictor warms up) and per trial.
@@ -55,11 +57,17 @@ class Trials:
 
 @dataclass
 class RunResult(Trials):
-    """One predictor on one of the paper's configurations."""
+    """One predictor on one of the paper's configurations, in a regular or JONSWAP sea."""
 
     predictor: str
     wave: int
     object: str
+    sea: str = "regular"
+
+    @property
+    def config(self) -> tuple[str, int, str]:
+        """The recording's configuration: sea, wave, object."""
+        return self.sea, self.wave, self.object
 
 
 def trial_results(outcomes: list[dict], trials: int, attempts: int
@@ -105,14 +113,14 @@ def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
     return summary, round(time.monotonic() - started, 1), proc.returncode
 
 
-def run_one(predictor: str, wave: int, obj: str, trials: int, attempts: int, seed: int,
-            out: Path) -> RunResult:
-    recording = cached_recording(wave=wave, object=obj, seed=seed,
-                                 seconds=WARMUP_S + trials * PER_TRIAL_S)
-    run_dir = out / "runs" / f"{predictor}-wave{wave}-{obj}"
+def run_one(predictor: str, sea: str, wave: int, obj: str, trials: int, attempts: int,
+            seed: int, out: Path) -> RunResult:
+    recording = _recording((sea, wave, obj, seed, WARMUP_S + trials * PER_TRIAL_S))
+    kind = "" if sea == "regular" else f"{sea}-"
+    run_dir = out / "runs" / f"{predictor}-{kind}wave{wave}-{obj}"
     summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
-    return RunResult(predictor, wave, obj, trials=trials, success_attempt=success,
+    return RunResult(predictor, wave, obj, sea, trials=trials, success_attempt=success,
                      failures=failures, unfinished=unfinished, seconds=seconds, exit_code=code)
 
 
@@ -130,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=20)
     p.add_argument("--attempts", type=int, default=3)
     p.add_argument("--predictors", default=f"harmonic,linear,{DEFAULT_MODEL}")
+    p.add_argument("--seas", default="regular", help=f"of {', '.join(SEAS)}")
     p.add_argument("--waves", default=",".join(str(w) for w in TABLE_I))
     p.add_argument("--objects", default=",".join(OBJECTS))
     p.add_argument("--seed", type=int, default=0)
@@ -139,23 +148,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     a = p.parse_args(args)
     predictors = a.predictors.split(",")
+    seas = a.seas.split(",")
     waves = [int(w) for w in a.waves.split(",")]
     objects = a.objects.split(",")
     bad = [x for x in predictors if x not in MODELS] + [str(w) for w in waves
                                                          if w not in TABLE_I]
-    bad += [o for o in objects if o not in OBJECTS]
+    bad += [o for o in objects if o not in OBJECTS] + [x for x in seas if x not in SEAS]
     if bad:
-        p.error(f"unknown {', '.join(bad)}: predictors {', '.join(MODELS)}; waves "
+        p.error(f"unknown {', '.join(bad)}: predictors {', '.join(MODELS)}; seas "
+                f"{', '.join(SEAS)}; waves "
                 f"{', '.join(map(str, TABLE_I))}; objects {', '.join(OBJECTS)}")
     a.out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     # Recordings first (cached; one per configuration, shared by the predictors).
-    configs = [(w, o) for w in waves for o in objects]
+    configs = [(sea, w, o) for sea in seas for w in waves for o in objects]
     seconds = WARMUP_S + a.trials * PER_TRIAL_S
     with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
-        list(tqdm(pool.map(_recording, [(w, o, a.seed, seconds) for w, o in configs]),
+        list(tqdm(pool.map(_recording, [(*c, a.seed, seconds) for c in configs]),
                   total=len(configs), desc="recordings", unit="rec"))
-    jobs = [(pred, w, o) for pred in predictors for w, o in configs]
+    jobs = [(pred, *c) for pred in predictors for c in configs]
     results: list[RunResult] = []
     with ThreadPoolExecutor(a.jobs) as pool:
         futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out)
@@ -163,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
             results.append(f.result())
     order = {job: i for i, job in enumerate(jobs)}
-    results.sort(key=lambda r: order[(r.predictor, r.wave, r.object)])
+    results.sort(key=lambda r: order[(r.predictor, *r.config)])
     from wavegrasp.ops.report import write_report
 
     elapsed = time.monotonic() - started
@@ -172,9 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if any(r.exit_code for r in results) else 0
 
 
-def _recording(config: tuple[int, str, int, float]) -> Path:
-    wave, obj, seed, seconds = config
-    return cached_recording(wave=wave, object=obj, seed=seed, seconds=seconds)
+def _recording(config: tuple[str, int, str, int, float]) -> Path:
+    sea, wave, obj, seed, seconds = config
+    return cached_recording(wave=wave, object=obj, seed=seed, seconds=seconds,
+                            irregular=sea == "jonswap")
 
 
 def as_json(results: list[RunResult]) -> list[dict]:

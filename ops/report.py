@@ -39,19 +39,19 @@ def summary(results: list) -> dict[str, dict[str, float]]:
 
 def markdown(results: list, settings: dict) -> str:
     predictors = list(dict.fromkeys(r.predictor for r in results))
-    configs = list(dict.fromkeys((r.wave, r.object) for r in results))
-    by = {(r.predictor, r.wave, r.object): r for r in results}
+    configs = list(dict.fromkeys(r.config for r in results))
+    by = {(r.predictor, r.config): r for r in results}
     lines = [f"# wavegrasp eval: {settings['trials']} trials x up to {settings['attempts']} "
              f"attempts, seed {settings['seed']}, {settings['elapsed_s'] / 60:.1f} min", "",
              "Success: first attempt / after reattempts.", "",
-             "| wave | object | " + " | ".join(predictors) + " |",
-             "|---|---|" + "---|" * len(predictors)]
-    for wave, obj in configs:
-        cells = [f"{by[p, wave, obj].rate(1):.0%} / {by[p, wave, obj].rate(99):.0%}"
+             "| sea | wave | object | " + " | ".join(predictors) + " |",
+             "|---|---|---|" + "---|" * len(predictors)]
+    for config in configs:
+        cells = [f"{by[p, config].rate(1):.0%} / {by[p, config].rate(99):.0%}"
                  for p in predictors]
-        lines.append(f"| {wave} | {obj} | " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(map(str, config)) + " | " + " | ".join(cells) + " |")
     s = summary(results)
-    lines.append("| **mean** | | " + " | ".join(
+    lines.append("| **mean** | | | " + " | ".join(
         f"**{s[p]['first_attempt']:.1%} / {s[p]['after_reattempts']:.1%}**"
         for p in predictors) + " |")
     lines += ["", "Failed attempts by kind (Table II):", "",
@@ -83,19 +83,20 @@ def plot_success(path: Path, results: list) -> None:
     import matplotlib.pyplot as plt
 
     predictors = list(dict.fromkeys(r.predictor for r in results))
-    configs = list(dict.fromkeys((r.wave, r.object) for r in results))
-    by = {(r.predictor, r.wave, r.object): r for r in results}
+    configs = list(dict.fromkeys(r.config for r in results))
+    by = {(r.predictor, r.config): r for r in results}
     x = np.arange(len(configs))
     width = 0.8 / len(predictors)
     fig, ax = plt.subplots(figsize=(max(8, len(configs) * 0.9), 4.5))
     for i, p in enumerate(predictors):
-        after = [100 * by[p, w, o].rate(99) for w, o in configs]
-        first = [100 * by[p, w, o].rate(1) for w, o in configs]
+        after = [100 * by[p, c].rate(99) for c in configs]
+        first = [100 * by[p, c].rate(1) for c in configs]
         bars = ax.bar(x + (i - (len(predictors) - 1) / 2) * width, after, width, label=p,
                       alpha=0.45)
         ax.bar(x + (i - (len(predictors) - 1) / 2) * width, first, width,
                color=bars.patches[0].get_facecolor(), alpha=1.0)
-    ax.set_xticks(x, [f"wave {w}\n{o}" for w, o in configs], fontsize=8)
+    ax.set_xticks(x, [f"{'' if s == 'regular' else s + ' '}wave {w}\n{o}"
+                      for s, w, o in configs], fontsize=8)
     ax.set_ylabel("grasp success, % of trials")
     ax.set_ylim(0, 105)
     ax.set_title("Success per configuration: solid first attempt, pale after reattempts")

@@ -35,7 +35,7 @@ from wavegrasp.ops.experiment import (
 from wavegrasp.ops.sample import cached_recording, recording_path
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.wavetank.scenario import Scenario
-from wavegrasp.wavetank.suite import draw_scenarios, grasp_verdict
+from wavegrasp.wavetank.suite import SEAS, draw_scenarios, grasp_verdict
 
 #: Recording seconds per attempt: up to 5 s waiting for an approval, mostly up to 4 s of
 #: approach (later only where no sooner grasp plans), the hold and the return to standby.
@@ -79,7 +79,8 @@ def factors(s: Scenario) -> dict[str, float | str]:
             "height (m)": round(float(shoulder[2] - rest[2]), 3),
             "object": s.object.family,
             "size (m)": max(s.object.diameter_m, s.object.length_m or 0.0),
-            "period (s)": s.sea.period_s, "wave height (m)": s.sea.height_m,
+            "sea": s.sea.kind, "period (s)": s.sea.period_s,
+            "wave height (m)": s.sea.height_m,
             "camera distance (m)": round(float(np.linalg.norm(eye - rest)), 3),
             "cloud": s.camera.cloud}
 
@@ -150,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=10)
     p.add_argument("--attempts", type=int, default=3)
     p.add_argument("--predictors", default=DEFAULT_MODEL)
+    p.add_argument("--seas", default="regular", help="the kinds of sea drawn from, alike "
+                   f"(of {', '.join(SEAS)}); regular alone draws what earlier versions drew")
     p.add_argument("--jobs", type=int, default=(os.cpu_count() or 1) + 1)
     p.add_argument("--discard-recordings", action="store_true",
                    help="generate each recording when its runs come up and delete it after "
@@ -162,8 +165,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--scenarios and --trials must be at least 1")
     a.out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    drawn, redrawn = draw_scenarios(a.scenarios, a.seed,
-                                    seconds=recording_seconds(a.trials, a.attempts))
+    try:
+        drawn, redrawn = draw_scenarios(a.scenarios, a.seed,
+                                        seconds=recording_seconds(a.trials, a.attempts),
+                                        seas=tuple(a.seas.split(",")))
+    except ValueError as exc:
+        p.error(str(exc))
     out_of_reach = {s.name: why for s in drawn if (why := grasp_verdict(s))}
     runnable = [s for s in drawn if s.name not in out_of_reach]
     results: list[ScenarioResult] = []

@@ -122,6 +122,18 @@ def test_random_scenarios_are_deterministic_and_span_the_documented_ranges() -> 
     assert any(turned) and not all(turned)
 
 
+def test_random_seas_are_drawn_of_the_kinds_asked_for_and_the_rest_unchanged() -> None:
+    regular, _ = draw_scenarios(12, seed=5)
+    both, _ = draw_scenarios(12, seed=5, seas=("regular", "jonswap"))
+    assert {s.sea.kind for s in regular} == {"regular"}
+    assert {s.sea.kind for s in both} == {"regular", "jonswap"}
+    # The kind is drawn on its own: every other parameter is the regular suite's.
+    for r, b in zip(regular, both, strict=True):
+        assert b.model_copy(update={"sea": b.sea.model_copy(update={"kind": "regular"})}) == r
+    with pytest.raises(ValueError, match="unknown choppy; known regular, jonswap"):
+        draw_scenarios(1, seed=5, seas=("regular", "choppy"))
+
+
 def test_reach_is_judged_from_the_arm_model_over_the_whole_swing() -> None:
     near = paper_scenario(2, "buoy")
     assert reach_verdict(near) is None

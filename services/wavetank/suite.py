@@ -1,8 +1,9 @@
 """Random scenarios drawn from the ranges a user's vehicle, object and sea may span.
 
-Ranges (regular seas; irregular ones come with their own suite):
-- sea: height 0.05-0.35 m, period 0.8-2.5 s, current 0-5 cm/s in any direction; the water
-  0.3-0.6 m deeper than the object's rest height;
+Ranges:
+- sea: regular or JONSWAP (of those asked for, drawn alike), height (JONSWAP: significant
+  height) 0.05-0.35 m, period (JONSWAP: peak period) 0.8-2.5 s, current 0-5 cm/s in any
+  direction; the water 0.3-0.6 m deeper than the object's rest height;
 - object: spheres 6-18 cm across, cylinders 4-12 cm across and 8-32 cm long; a third of the
   spheres are ellipsoids (0.6-1.7 times as long as wide), a third of the cylinders boxes (the
   third side 0.5-1 times the width, turned any way about its axis) and another third bottles
@@ -94,14 +95,19 @@ def mount_at(rest: np.ndarray, distance_m: float, bearing_deg: float, rise_m: fl
 # Its own generator (from the scenario's seed) so that adding it left the other draws as
 # they were.
 CLOUDS = ("dense", "organized")
+SEAS = ("regular", "jonswap")
 
 
-def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int) -> Scenario:
-    """One draw; raises ValueError if it cannot be."""
+def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int,
+                  seas: tuple[str, ...] = ("regular",)) -> Scenario:
+    """One draw, its sea of the kinds ``seas``; raises ValueError if it cannot be."""
     obj = draw_object(rng, np.random.default_rng([seed, 2]))
     rest = np.array([0.0, 0.0, obj.rest_height_m])
     depth = obj.rest_height_m + obj.bounding_radius_m + rng.uniform(0.3, 0.6)
-    sea = SeaSpec(height_m=round(rng.uniform(0.05, 0.35), 3),
+    # The kind from a stream of its own, as the cloud's: a suite of regular seas alone is
+    # the same draw as before irregular ones could be asked for.
+    kind = seas[np.random.default_rng([seed, 3]).integers(len(seas))]
+    sea = SeaSpec(kind=kind, height_m=round(rng.uniform(0.05, 0.35), 3),
                   period_s=round(rng.uniform(0.8, 2.5), 3), depth_m=round(depth, 3),
                   current_mps=round(rng.uniform(0.0, 0.05), 3),
                   current_deg=round(rng.uniform(-180, 180), 1))
@@ -122,16 +128,21 @@ def draw_scenario(rng: np.random.Generator, name: str, seconds: float, seed: int
                     seconds=seconds, seed=seed)
 
 
-def draw_scenarios(n: int, seed: int, seconds: float = 60.0,
-                   max_tries: int = 50) -> tuple[list[Scenario], list[str]]:
-    """``n`` scenarios drawn with ``seed``; also why the draws that could not be were not."""
+def draw_scenarios(n: int, seed: int, seconds: float = 60.0, max_tries: int = 50,
+                   seas: tuple[str, ...] = ("regular",)) -> tuple[list[Scenario], list[str]]:
+    """``n`` scenarios drawn with ``seed``, their seas of the kinds ``seas`` (:data:`SEAS`);
+    also why the draws that could not be were not."""
+    bad = [k for k in seas if k not in SEAS]
+    if bad or not seas:
+        raise ValueError(f"seas: unknown {', '.join(bad) or 'none given'}; known "
+                         f"{', '.join(SEAS)}")
     rng = np.random.default_rng(seed)
     scenarios, refused = [], []
     for i in range(n):
         for _ in range(max_tries):
             try:
                 scenarios.append(draw_scenario(rng, f"random-{seed}-{i:03d}", seconds,
-                                               seed * 1000 + i))
+                                               seed * 1000 + i, tuple(seas)))
                 break
             except ValidationError as exc:
                 refused.append(describe(exc))
