@@ -97,6 +97,15 @@ class PlannerConfig(BaseModel):
                                       "likely be outside the open jaw as inside it)")
     ik_max_iter: int = 40
     ik_restarts: int = 0
+    update_delay_s: float = Field(0.1, description="closed loop: an update takes over this "
+                                  "long after the prediction it comes from (time to be "
+                                  "approved and reach the arm)")
+    splice_s: float = Field(0.2, description="closed loop: an update joins the moved approach "
+                            "this long after it takes over (ruckig, from the arm's state)")
+    update_min_m: float = Field(0.001, description="closed loop: a grasp point moved less "
+                                "is not updated")
+    update_max_m: float = Field(0.05, description="closed loop: nor one moved more (the "
+                                "approach planned for it no longer fits: the gate aborts)")
 
 
 @dataclass
@@ -120,6 +129,12 @@ class Plan:
     rejected: Counter = field(default_factory=Counter)
     #: Grasp poses (4, 4), world, that reached the full check, in order: this one's last.
     candidates: list[np.ndarray] = field(default_factory=list)
+    #: The approach's spline: the times (k,) s it passes the waypoints ``points`` and the
+    #: joint values (k, 6) there; and when the move to P_init starts and the approach
+    #: begins (s). A closed-loop update moves them (:mod:`wavegrasp.planner.update`).
+    knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    qs: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    move_s: tuple[float, float] = (0.0, 0.0)
 
 
 #: How finely :func:`_again` looks between the prediction's samples, and how far either
@@ -412,7 +427,7 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
         alpha = cfg.alpha_m + here.extent(n) + (jaw_lead(arm, R.T @ -n) if clear else 0.0)
         points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, final_m, move,
                            final_step_m)
-        qs = _approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
+        qs = approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
                               solved)
         if qs is not None:
             break
@@ -482,7 +497,8 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
     preshape = min(arm.jaw_max_opening_m, need.max() + 2.0 * cfg.jaw_margin_m)
     t_close = jaw_closing(preshape, width, t_g, times[astride], need, arm.jaw_closing_mps)
     return Plan(t_start, t_g, times, q, qd, tool, points, T_grasp, -n, confidence, final_from,
-                preshape, t_close)
+                preshape, t_close, knots=t_g - d_path + approach.spline.x, qs=qs,
+                move_s=(float(t_pre[0]) if len(t_pre) else float(t_app[0]), float(t_app[0])))
 
 
 def jaw_needs(body: Body, times: np.ndarray, rel: np.ndarray, x: np.ndarray,
@@ -531,7 +547,7 @@ def stage_delays(slack_s: float, period_s: float, tries: int) -> np.ndarray:
     return np.concatenate([early, late[late > span + 0.05]])
 
 
-def _approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
+def approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
                      points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig,
                      solved: dict[bytes, np.ndarray | None]) -> np.ndarray | None:
     """Joint values (k, n) at the waypoints ``points`` (k, 3), world, the tool held as in

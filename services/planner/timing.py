@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
+from ruckig import InputParameter, Result, Ruckig, RuckigError, Synchronization, Trajectory
 from scipy.interpolate import CubicSpline
 
 
@@ -33,25 +33,25 @@ class Segment:
 
 
 def segment(q0: np.ndarray, v0: np.ndarray, a0: np.ndarray, q1: np.ndarray, v1: np.ndarray,
-            limits: Limits, min_duration: float = 0.0, independent: bool = False
-            ) -> Segment | None:
-    """Time-optimal (or ``min_duration``) move from state 0 to (q1, v1, zero acceleration);
-    ``independent``: each joint on its own time-optimal profile (the duration is then the
-    slowest joint's)."""
+            limits: Limits, min_duration: float = 0.0, independent: bool = False,
+            a1: np.ndarray | None = None) -> Segment | None:
+    """Time-optimal (or ``min_duration``) move from state 0 to (q1, v1, a1: zero unless
+    given); ``independent``: each joint on its own time-optimal profile (the duration is
+    then the slowest joint's)."""
     n = len(q0)
     otg, inp, traj = Ruckig(n), InputParameter(n), Trajectory(n)
     if independent:
         inp.synchronization = Synchronization.No
     inp.current_position, inp.current_velocity, inp.current_acceleration = q0, v0, a0
     inp.target_position, inp.target_velocity = q1, v1
-    inp.target_acceleration = np.zeros(n)
+    inp.target_acceleration = np.zeros(n) if a1 is None else a1
     inp.max_velocity, inp.max_acceleration = limits.velocity, limits.acceleration
     inp.max_jerk = limits.jerk
     if min_duration > 0:
         inp.minimum_duration = min_duration
     try:
         result = otg.calculate(inp, traj)
-    except RuntimeError:
+    except (RuntimeError, RuckigError):  # an input beyond the limits it is given
         return None
     if result not in (Result.Working, Result.Finished):
         return None
