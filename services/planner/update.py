@@ -7,8 +7,9 @@ the arm stays on its branch). From ``update_delay_s`` after the prediction (the 
 approved and reach the arm) ruckig takes the arm from the state the current trajectory gives
 it then (position, velocity, acceleration), inside the arm's limits: before the approach,
 to the moved P_init by the time the approach begins; during it, onto the moved approach
-within ``splice_s`` (or a few times that), the way ros2_control's joint_trajectory_controller splices a new
-trajectory into the one it runs. The grasp time stays.
+within ``splice_s`` (or a few times that), the way ros2_control's
+joint_trajectory_controller splices a new trajectory into the one it runs. The grasp time
+stays.
 
 Times are seconds on the recording clock; positions metres, ``world``; joints radians.
 """
