@@ -63,6 +63,12 @@ class RunResult(Trials):
     wave: int
     object: str
     sea: str = "regular"
+    execution: str = "closed"
+
+    @property
+    def label(self) -> str:
+        """The report's column: the predictor, and its execution where not the default."""
+        return self.predictor if self.execution == "closed" else f"{self.predictor} open"
 
     @property
     def config(self) -> tuple[str, int, str]:
@@ -84,17 +90,19 @@ def trial_results(outcomes: list[dict], trials: int, attempts: int
         if o["success"]:
             success[k], ended[k] = o["attempt"], True
             continue
-        kind = "no plan approved" if o["evidence"].get("no_attempt") else o["failure"]
+        kind = "no plan approved" if o["evidence"].get("no_attempt") else (
+            "aborted" if o.get("aborted") else o["failure"])
         failures[kind] = failures.get(kind, 0) + 1
         ended[k] = ended[k] or o["evidence"].get("no_attempt", False) or o["attempt"] >= attempts
     return success, failures, sum(not e for e in ended)
 
 
 def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
-                  attempts: int) -> tuple[dict, float, int]:
+                  attempts: int, execution: str = "closed") -> tuple[dict, float, int]:
     """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``:
     its summary.json, wall seconds and exit code."""
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
+           "WAVEGRASP_EXECUTION": execution,
            "WAVEGRASP_STOP_AFTER_TRIALS": "true", "WAVEGRASP_TRIAL_TIMEOUT_S": str(TRIAL_TIMEOUT_S),
            # The clouds are in the cached recording already: 36 copies would be 16 GB.
            "WAVEGRASP_RECORD_EXCLUDE": "trisect/points",
@@ -113,15 +121,18 @@ def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
     return summary, round(time.monotonic() - started, 1), proc.returncode
 
 
-def run_one(predictor: str, sea: str, wave: int, obj: str, trials: int, attempts: int,
-            seed: int, out: Path) -> RunResult:
+def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trials: int,
+            attempts: int, seed: int, out: Path) -> RunResult:
     recording = _recording((sea, wave, obj, seed, WARMUP_S + trials * PER_TRIAL_S))
     kind = "" if sea == "regular" else f"{sea}-"
-    run_dir = out / "runs" / f"{predictor}-{kind}wave{wave}-{obj}"
-    summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts)
+    loop = "" if execution == "closed" else f"-{execution}"
+    run_dir = out / "runs" / f"{predictor}{loop}-{kind}wave{wave}-{obj}"
+    summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts,
+                                           execution)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
-    return RunResult(predictor, wave, obj, sea, trials=trials, success_attempt=success,
-                     failures=failures, unfinished=unfinished, seconds=seconds, exit_code=code)
+    return RunResult(predictor, wave, obj, sea, execution, trials=trials,
+                     success_attempt=success, failures=failures, unfinished=unfinished,
+                     seconds=seconds, exit_code=code)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--attempts", type=int, default=3)
     p.add_argument("--predictors", default=f"harmonic,linear,{DEFAULT_MODEL}")
     p.add_argument("--seas", default="regular", help=f"of {', '.join(SEAS)}")
+    p.add_argument("--executions", default="closed", help="closed (updates on every "
+                   "prediction, the gate may abort) and/or open (the paper's)")
     p.add_argument("--waves", default=",".join(str(w) for w in TABLE_I))
     p.add_argument("--objects", default=",".join(OBJECTS))
     p.add_argument("--seed", type=int, default=0)
@@ -149,14 +162,16 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(args)
     predictors = a.predictors.split(",")
     seas = a.seas.split(",")
+    executions = a.executions.split(",")
     waves = [int(w) for w in a.waves.split(",")]
     objects = a.objects.split(",")
     bad = [x for x in predictors if x not in MODELS] + [str(w) for w in waves
                                                          if w not in TABLE_I]
     bad += [o for o in objects if o not in OBJECTS] + [x for x in seas if x not in SEAS]
+    bad += [x for x in executions if x not in ("closed", "open")]
     if bad:
         p.error(f"unknown {', '.join(bad)}: predictors {', '.join(MODELS)}; seas "
-                f"{', '.join(SEAS)}; waves "
+                f"{', '.join(SEAS)}; executions closed, open; waves "
                 f"{', '.join(map(str, TABLE_I))}; objects {', '.join(OBJECTS)}")
     a.out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -166,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
         list(tqdm(pool.map(_recording, [(*c, a.seed, seconds) for c in configs]),
                   total=len(configs), desc="recordings", unit="rec"))
-    jobs = [(pred, *c) for pred in predictors for c in configs]
+    jobs = [(pred, x, *c) for pred in predictors for x in executions for c in configs]
     results: list[RunResult] = []
     with ThreadPoolExecutor(a.jobs) as pool:
         futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out)
@@ -174,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
             results.append(f.result())
     order = {job: i for i, job in enumerate(jobs)}
-    results.sort(key=lambda r: order[(r.predictor, *r.config)])
+    results.sort(key=lambda r: order[(r.predictor, r.execution, *r.config)])
     from wavegrasp.ops.report import write_report
 
     elapsed = time.monotonic() - started

@@ -116,7 +116,8 @@ class Launcher:
     def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
         self.summary.on_outcome(msg)
         self.log(f"grasp attempt {msg.attempt} ({msg.plan_id}): "
-                 + ("success" if msg.success else f"failed, {msg.failure}"))
+                 + ("success" if msg.success else f"aborted, {msg.evidence.get('reason')}"
+                    if msg.aborted else f"failed, {msg.failure}"))
 
     def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
         self.summary.on_stats(msg)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 FAILURES = ["prediction", "collision", "timing", "abrupt_change", "unreachable", "other",
-            "no plan approved"]
+            "no plan approved", "aborted"]
 
 
 def write_report(out: Path, results: list, settings: dict) -> None:
@@ -28,8 +28,8 @@ def write_report(out: Path, results: list, settings: dict) -> None:
 def summary(results: list) -> dict[str, dict[str, float]]:
     """Per predictor: mean success over configurations, first attempt and within all."""
     out: dict[str, dict[str, float]] = {}
-    for name in dict.fromkeys(r.predictor for r in results):
-        mine = [r for r in results if r.predictor == name]
+    for name in dict.fromkeys(r.label for r in results):
+        mine = [r for r in results if r.label == name]
         out[name] = {"first_attempt": float(np.mean([r.rate(1) for r in mine])),
                      "after_reattempts": float(np.mean([r.rate(99) for r in mine])),
                      "trials": sum(r.trials for r in mine),
@@ -38,9 +38,9 @@ def summary(results: list) -> dict[str, dict[str, float]]:
 
 
 def markdown(results: list, settings: dict) -> str:
-    predictors = list(dict.fromkeys(r.predictor for r in results))
+    predictors = list(dict.fromkeys(r.label for r in results))
     configs = list(dict.fromkeys(r.config for r in results))
-    by = {(r.predictor, r.config): r for r in results}
+    by = {(r.label, r.config): r for r in results}
     lines = [f"# wavegrasp eval: {settings['trials']} trials x up to {settings['attempts']} "
              f"attempts, seed {settings['seed']}, {settings['elapsed_s'] / 60:.1f} min", "",
              "Success: first attempt / after reattempts.", "",
@@ -58,7 +58,7 @@ def markdown(results: list, settings: dict) -> str:
               "| predictor | " + " | ".join(FAILURES) + " |",
               "|---|" + "---|" * len(FAILURES)]
     for p in predictors:
-        counts = [sum(r.failures.get(k, 0) for r in results if r.predictor == p)
+        counts = [sum(r.failures.get(k, 0) for r in results if r.label == p)
                   for k in FAILURES]
         lines.append(f"| {p} | " + " | ".join(str(c) for c in counts) + " |")
     lines += unfinished_lines(results)
@@ -82,9 +82,9 @@ def plot_success(path: Path, results: list) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    predictors = list(dict.fromkeys(r.predictor for r in results))
+    predictors = list(dict.fromkeys(r.label for r in results))
     configs = list(dict.fromkeys(r.config for r in results))
-    by = {(r.predictor, r.config): r for r in results}
+    by = {(r.label, r.config): r for r in results}
     x = np.arange(len(configs))
     width = 0.8 / len(predictors)
     fig, ax = plt.subplots(figsize=(max(8, len(configs) * 0.9), 4.5))
@@ -112,11 +112,11 @@ def plot_failures(path: Path, results: list) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    predictors = list(dict.fromkeys(r.predictor for r in results))
+    predictors = list(dict.fromkeys(r.label for r in results))
     fig, ax = plt.subplots(figsize=(7, 4))
     bottom = np.zeros(len(predictors))
     for kind in FAILURES:
-        counts = np.array([sum(r.failures.get(kind, 0) for r in results if r.predictor == p)
+        counts = np.array([sum(r.failures.get(kind, 0) for r in results if r.label == p)
                            for p in predictors], dtype=float)
         if counts.any():
             ax.bar(predictors, counts, bottom=bottom, label=kind)

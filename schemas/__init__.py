@@ -16,6 +16,7 @@ from wavegrasp.schemas.messages import (
     CartesianSample,
     Clock,
     FrameAck,
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -42,6 +43,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         GraspPlan,
         ArmStandby,
         GateDecision,
+        GateAbort,
         GraspOutcome,
         ArmState,
         Clock,
@@ -59,6 +61,7 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/planner/plan": GraspPlan,
     "wavegrasp/planner/standby": ArmStandby,
     "wavegrasp/gate/decision": GateDecision,
+    "wavegrasp/gate/abort": GateAbort,
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
     "wavegrasp/player/status": PlayerStatus,
@@ -98,7 +101,7 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 
 __all__ = [
-    "ArmState", "CartesianSample", "Clock", "FrameAck", "GateDecision", "GraspOutcome",
+    "ArmState", "CartesianSample", "Clock", "FrameAck", "GateAbort", "GateDecision", "GraspOutcome",
     "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
     "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
     "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",

@@ -203,6 +203,10 @@ class GraspPlan(Message):
         default_factory=list, description="joint positions, in joint_names' order, the arm "
         "returns to after the attempt: its home pose turned to face the object; empty: its "
         "home pose")
+    update_of: str | None = Field(
+        None, description="closed-loop execution: this plan moves the executing plan of this "
+        "plan_id to a newer prediction; its joint_trajectory starts where it takes over (the "
+        "arm splices it in) and ends at the grasp")
 
     @field_validator("joint_trajectory")
     @classmethod
@@ -239,6 +243,17 @@ class GateDecision(Message):
 FailureKind = Literal["prediction", "collision", "timing", "abrupt_change", "unreachable", "other"]
 
 
+class GateAbort(Message):
+    """``wavegrasp/gate/abort``: stop executing plan ``plan_id`` and retreat (closed-loop
+    execution), with the reason and the figure that passed its limit."""
+
+    header: Header
+    plan_id: str
+    reason: str
+    value: float | None = Field(None, description="the error (m) or age (s) past its limit")
+    limit: float | None = None
+
+
 class GraspOutcome(Message):
     """``wavegrasp/sim/outcome``: one attempt's result and the evidence that decided it."""
 
@@ -249,6 +264,8 @@ class GraspOutcome(Message):
     success: bool
     failure: FailureKind | None = None
     evidence: dict[str, float | str | bool] = Field(default_factory=dict)
+    aborted: bool = Field(False, description="the gate aborted the attempt (evidence: its "
+                          "reason); not a failure of the paper's kinds")
 
 
 class ArmState(Message):

@@ -25,6 +25,7 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -54,6 +55,16 @@ class GateConfig(BaseModel):
     abrupt_min_m: float = Field(0.02, gt=0, description="abrupt: and e > this, m")
     latency_margin_s: float = Field(0.05, ge=0, description="slack beyond latency to start, s")
     execution_hold_s: float = Field(1.5, ge=0, description="an approved plan runs to grasp + this")
+    execution: Literal["closed", "open"] = Field("closed", description="closed: approve "
+                                                 "updates of the executing plan and abort "
+                                                 "it (watch) past the limits below; open: "
+                                                 "the paper's, approve once and never abort")
+    abort_error_m: float = Field(0.02, gt=0, description="abort: the mean error ē past this "
+                                 "while executing (twice ε: the plan was approved under ε, "
+                                 "and updates follow the object)")
+    abort_miss_m: float = Field(0.03, gt=0, description="abort: the newest prediction puts the "
+                                "object this far from the grasp point the arm goes to at the "
+                                "grasp time (no update could follow it)")
     required_services: list[str] = Field(
         default_factory=lambda: ["perception", "predictor", "planner"],
         description="upstream services whose liveliness token must be up")
@@ -110,6 +121,9 @@ class Gate:
         # The latest observations' stamps (ns), centroid or not: the camera's frame rate.
         self.arrivals: deque[int] = deque(maxlen=21)
         self.executing: dict[str, int] = {}  # approved plan id -> until (ns)
+        #: Closed loop: the executing plan's id and where and when it grasps (the last
+        #: approved update's grasp point, metres, world; t_grasp ns).
+        self.grasp: tuple[str, np.ndarray, int] | None = None
         self.counts: Counter[str] = Counter()
 
     def reset(self) -> None:
@@ -202,6 +216,8 @@ class Gate:
 
     def on_outcome(self, plan_id: str) -> bool:
         """An outcome arrived: the plan no longer executes. True if it was executing."""
+        if self.grasp is not None and self.grasp[0] == plan_id:
+            self.grasp = None
         return self.executing.pop(plan_id, None) is not None
 
     # -- the decision -------------------------------------------------------------------------
@@ -255,6 +271,8 @@ class Gate:
         if not math.isfinite(latency_s) or latency_s < 0:
             raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
         self.executing = {pid: until for pid, until in self.executing.items() if until >= now_ns}
+        if plan.update_of is not None:
+            return self.decide_update(plan, now_ns, latency_s, header)
         failed: list[tuple[str, str]] = []
         errors = self.window(now_ns)
         mean = self.mean_error(now_ns)
@@ -283,6 +301,7 @@ class Gate:
         go = not failed
         if go:
             self.executing[plan.plan_id] = plan.t_grasp_ns + int(cfg.execution_hold_s * NS)
+            self.grasp = (plan.plan_id, _position(plan), plan.t_grasp_ns)
             reason = (f"go: error {mean * 1e3:.1f} mm <= {cfg.epsilon_m * 1e3:.1f} mm "
                       f"({len(errors)} errors)")
         else:
@@ -292,6 +311,69 @@ class Gate:
             plan_id=plan.plan_id, go=go, mean_error_m=mean, threshold_m=cfg.epsilon_m,
             window_s=cfg.window_s, reason=reason, failed=[name for name, _ in failed],
             matches=len(errors), latency_s=latency_s)
+
+    def decide_update(self, plan: GraspPlan, now_ns: int, latency_s: float,
+                      header: Header | None = None) -> GateDecision:
+        """Closed loop: go for an update of the executing plan while the prediction still
+        tracks the object (ē within ``abort_error_m``), its inputs are fresh, and it can take
+        over when it says."""
+        cfg, root = self.config, plan.update_of
+        failed: list[tuple[str, str]] = []
+        mean = self.mean_error(now_ns)
+        if cfg.execution != "closed":
+            failed.append(("open loop", "open-loop execution: no updates"))
+        if root not in self.executing:
+            failed.append(("not executing", f"plan {root} is not executing"))
+        if mean is not None and mean > cfg.abort_error_m:
+            failed.append(("error", f"error {mean * 1e3:.1f} mm > "
+                                    f"{cfg.abort_error_m * 1e3:.1f} mm"))
+        failed += self._freshness(plan, now_ns)
+        first = plan.joint_trajectory[0].t_ns if plan.joint_trajectory else plan.t_start_ns
+        if (first - now_ns) / NS < latency_s:
+            failed.append(("late", f"takes over {(first - now_ns) / 1e6:.0f} ms from now, "
+                                   f"{latency_s * 1e3:.0f} ms after its data came"))
+        go = not failed
+        if go:
+            self.executing[root] = plan.t_grasp_ns + int(cfg.execution_hold_s * NS)
+            self.grasp = (root, _position(plan), plan.t_grasp_ns)
+        return GateDecision(
+            header=header if header is not None else plan.header.model_copy(deep=True),
+            plan_id=plan.plan_id, go=go, mean_error_m=mean, threshold_m=cfg.abort_error_m,
+            window_s=cfg.window_s, reason="go: update" if go else "; ".join(
+                text for _, text in failed), failed=[name for name, _ in failed],
+            latency_s=latency_s)
+
+    def watch(self, now_ns: int) -> tuple[str, str, str, float, float] | None:
+        """Closed loop, while a plan executes before its grasp time: the plan to abort, the
+        kind and the words of why, the figure past its limit and the limit; None while all
+        is well. Past the limits:
+        the mean error ē (``abort_error_m``), the newest prediction's distance at the grasp
+        time from the grasp point (``abort_miss_m``), the age of the newest observation or
+        prediction (``max_input_age_s``, recording seconds)."""
+        cfg = self.config
+        if cfg.execution != "closed" or self.grasp is None:
+            return None
+        plan_id, point, t_grasp_ns = self.grasp
+        if now_ns >= t_grasp_ns or plan_id not in self.executing:
+            return None
+        newest = self.tracks[-1] if self.tracks else None
+        seen = self.latest_observation_ns
+        for what, stamp in (("observation", seen), ("prediction", newest and newest.made_ns)):
+            age = (now_ns - stamp) / NS if stamp is not None else math.inf
+            if age > cfg.max_input_age_s:
+                return (plan_id, f"stale {what}", f"stale {what}: {age:.2f} s old", age,
+                        cfg.max_input_age_s)
+        mean = self.mean_error(now_ns)
+        if mean is not None and mean > cfg.abort_error_m:
+            return (plan_id, "tracking error", f"tracking error {mean * 1e3:.1f} mm > "
+                    f"{cfg.abort_error_m * 1e3:.1f} mm", mean, cfg.abort_error_m)
+        assert newest is not None
+        if newest.t_ns[0] <= t_grasp_ns <= newest.t_ns[-1]:
+            miss = float(np.linalg.norm(newest.at(t_grasp_ns) - point))
+            if miss > cfg.abort_miss_m:
+                return (plan_id, "prediction moved", f"the object will be {miss * 1e3:.0f} "
+                        "mm from the grasp point", miss, cfg.abort_miss_m)
+        return None
 
     def _freshness(self, plan: GraspPlan, now_ns: int) -> list[tuple[str, str]]:
         """Stale-input failures: the latest observation and the plan's prediction by stamp."""
@@ -306,3 +388,8 @@ class Gate:
         if pred_age > limit:
             failed.append(("stale", f"stale prediction: {pred_age:.2f} s old"))
         return failed
+
+
+def _position(plan: GraspPlan) -> np.ndarray:
+    p = plan.grasp.position
+    return np.array([p.x, p.y, p.z])

@@ -2,7 +2,10 @@
 
 Subscribes ``wavegrasp/perception/object`` and ``wavegrasp/predictor/prediction`` (to score the
 predictions, the paper's eq. 13-14), ``wavegrasp/planner/plan`` (to decide) and
-``wavegrasp/sim/outcome`` (an outcome ends the plan's execution). Each decision carries the
+``wavegrasp/sim/outcome`` (an outcome ends the plan's execution). In closed-loop execution it
+also decides on the planner's updates of the executing plan and, at every camera frame until
+the grasp time, watches it: past its limits (:meth:`Gate.watch`) it sends
+``wavegrasp/gate/abort`` and the arm retreats. Each decision carries the
 plan's header plus the gate's hop, so its trace shows the whole chain from the camera frame.
 Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig`.
 """
@@ -18,8 +21,9 @@ from wavegrasp.gate.decision import Gate, GateConfig
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import derived_header
+from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -29,6 +33,7 @@ from wavegrasp.schemas import (
 
 log = logging.getLogger("wavegrasp.gate")
 DECISION_KEY = "wavegrasp/gate/decision"
+ABORT_KEY = "wavegrasp/gate/abort"
 
 
 class GateSettings(Settings, GateConfig):
@@ -68,6 +73,26 @@ class GateService(Service):
     def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
         self.counters["outcomes"] += 1
         self.gate.on_outcome(msg.plan_id)
+
+    def finish_frame(self, frame_seq: int) -> None:
+        self.watch()
+
+    def on_tick(self) -> None:
+        if self.settings.clock == "wall":  # a live vehicle's inputs may go silent between
+            self.watch()                   # frames; a replay's are judged at each frame
+
+    def watch(self) -> None:
+        found = self.gate.watch(self.clock.now_ns())
+        if found is None:
+            return
+        plan_id, kind, reason, value, limit = found
+        self.gate.on_outcome(plan_id)  # aborted: no longer executing, no more updates
+        self.counters["aborts"] += 1
+        self.counters[f"abort: {kind}"] += 1
+        log.info("abort %s: %s", plan_id, reason)
+        self.bus.publish(ABORT_KEY, GateAbort(
+            header=new_header(self.name, 0, self.clock.now_ns()), plan_id=plan_id,
+            reason=reason, value=value, limit=limit))
 
     def on_plan(self, msg: GraspPlan, d: Delivery) -> None:
         alive = self.bus.alive_now()

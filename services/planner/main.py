@@ -19,6 +19,7 @@ import sys
 import time
 from collections import Counter, deque
 from dataclasses import replace
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -30,6 +31,7 @@ from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body, Turns
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_poses
+from wavegrasp.planner.update import update_plan
 from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
@@ -38,6 +40,7 @@ from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
     ArmStandby,
     ArmState,
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -65,6 +68,11 @@ LONG = 1.5
 
 class PlannerSettings(Settings):
     arm_urdf: str | None = None
+    execution: Literal["closed", "open"] = Field("closed", description="closed: while an "
+                                                 "approved plan executes, every new warm "
+                                                 "prediction moves it (an update, "
+                                                 "update_of set); open: the paper's method, "
+                                                 "executed as approved")
     execution_hold_s: float = 1.5
     standby_every_s: float = Field(2.0, gt=0.0, description="the standby pose is solved "
                                    "again after this much recording time, if the object's sway "
@@ -73,8 +81,15 @@ class PlannerSettings(Settings):
 
 
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
-               service: str, standby: np.ndarray | None = None) -> GraspPlan:
+               service: str, standby: np.ndarray | None = None, update_of: str | None = None,
+               since: float | None = None) -> GraspPlan:
+    """The plan as sent; ``update_of``: the executing plan it moves, its trajectory from
+    ``since`` (s) on, where it takes over."""
     ns = lambda t: int(round(t * 1e9))  # noqa: E731
+    if since is not None:
+        keep = plan.times >= since - 1e-9
+        plan = replace(plan, times=plan.times[keep], q=plan.q[keep], qd=plan.qd[keep],
+                       tool=plan.tool[keep])
     t_ns = np.rint(plan.times * 1e9).astype(np.int64).tolist()
     grasp, *candidates = poses([plan.grasp_T_world, *plan.candidates])
     # Plain dicts validated at once: a third of the time of building each sample's model.
@@ -92,7 +107,7 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
         confidence=plan.confidence, waypoints=[Vec3.of(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
         t_close_ns=ns(plan.t_close), candidates=candidates,
-        standby=[] if standby is None else standby.tolist()))
+        standby=[] if standby is None else standby.tolist(), update_of=update_of))
 
 
 def poses(Ts: list[np.ndarray]) -> list[Pose]:
@@ -138,10 +153,16 @@ class PlannerService(Service):
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
         self._hint: Hint | None = None  # the last plan's grasp, tried first next time
+        #: The last plan sent (its id, the plan, the approved plan it updates or None) and,
+        #: once the gate approves it, the executing one: updated on every warm prediction
+        #: in closed-loop execution.
+        self._sent: tuple[str, Plan, str | None] | None = None
+        self._executing: tuple[str, Plan] | None = None
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+        self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
                            MotionPrediction)
@@ -239,9 +260,18 @@ class PlannerService(Service):
         if msg.go:
             hold = int(self.cfg.execution_hold_s * 1e9)
             self.busy_until_ns = self._t_grasp.get(msg.plan_id, self.clock.now_ns()) + hold
+            if self._sent is not None and self._sent[0] == msg.plan_id:
+                plan_id, plan, update_of = self._sent
+                self._executing = (update_of or plan_id, plan)
+
+    def on_abort(self, msg: GateAbort, _d: Delivery) -> None:
+        if self._executing is not None and self._executing[0] == msg.plan_id:
+            self._executing, self._hint = None, None
+            self.counters["aborted"] += 1
 
     def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
         self.busy_until_ns = 0
+        self._executing = None
         if not msg.success:  # a grasp that failed is not the one to try first again
             self._hint = None
 
@@ -306,6 +336,12 @@ class PlannerService(Service):
                                    f"{type(exc).__name__}: {exc}"[:300])
 
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
+        if self._executing is not None and msg.header.stamp_ns * 1e-9 > (
+                self._executing[1].t_grasp + self.cfg.execution_hold_s):
+            self._executing = None  # its outcome never came (an arm that did not take it)
+        if self._executing is not None and self.cfg.execution == "closed" and msg.warm:
+            self.update(msg, d)
+            return
         if msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             self._failing_since_ns = None
@@ -339,7 +375,32 @@ class PlannerService(Service):
         plan = to_message(result, msg, d.recv_ns, self.arm, self.name,
                           self.return_pose(T_world_base, msg.header.stamp_ns))
         self._t_grasp = {plan.plan_id: plan.t_grasp_ns}
+        self._sent = (plan.plan_id, result, None)
         self.bus.publish(PLAN_KEY, plan)
+
+    def update(self, msg: MotionPrediction, d: Delivery) -> None:
+        """Closed loop: move the executing plan to this prediction
+        (:func:`~wavegrasp.planner.update.update_plan`) and send it as an update of it."""
+        assert self._executing is not None
+        root, plan = self._executing
+        if msg.header.stamp_ns * 1e-9 >= plan.t_grasp:
+            self.counters["skipped: executing"] += 1
+            return
+        T_world_base = self.tf.lookup("world", self.arm.base_link)
+        path = PredictedPath.from_message(msg)
+        now = msg.header.stamp_ns * 1e-9
+        result = update_plan(plan, path, now, self.arm, T_world_base,
+                             self.turning(path.period_s), self.config)
+        if isinstance(result, str):
+            self.counters[f"update: {result}"] += 1
+            return
+        self.counters["updates"] += 1
+        standby = self.return_pose(T_world_base, msg.header.stamp_ns)
+        sent = to_message(result, msg, d.recv_ns, self.arm, self.name, standby, update_of=root,
+                          since=now + self.config.update_delay_s)
+        self._t_grasp = {sent.plan_id: sent.t_grasp_ns}
+        self._sent = (sent.plan_id, result, root)
+        self.bus.publish(PLAN_KEY, sent)
 
     def rehearse(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                  T_world_base: np.ndarray, result: Plan | Counter) -> None:

@@ -53,5 +53,6 @@ class RunSummary:
         return sum(sum(s["bad"].values()) for s in self.stats.values())
 
     def outcome_kinds(self) -> dict[str, int]:
-        """Attempts by result: ``success`` or the failure's kind."""
-        return dict(Counter("success" if o["success"] else o["failure"] for o in self.outcomes))
+        """Attempts by result: ``success``, ``aborted`` or the failure's kind."""
+        return dict(Counter("success" if o["success"] else "aborted" if o.get("aborted")
+                            else o["failure"] for o in self.outcomes))

@@ -44,6 +44,8 @@ class JudgeConfig(BaseModel):
     timing_window_s: float = 0.5
     abrupt_m: float = 0.02
     closed_m: float = Field(0.0, description="the jaw's commanded opening when closing")
+    retreat_m: float = Field(0.08, description="an aborted attempt backs the tool out this "
+                             "far along its approach before it returns to standby")
 
 
 @dataclass
@@ -105,6 +107,7 @@ class Result:
     success: bool
     failure: str | None
     evidence: dict[str, float | str | bool] = field(default_factory=dict)
+    aborted: bool = False
 
 
 class Executor:
@@ -242,18 +245,58 @@ class Executor:
                 "strayed_after_approval_s": float(times[window][np.argmax(off > limit)]
                                                   - a.approved_at)}
 
-    def _finish(self, result: Result) -> Result:
-        """Open the jaw and head back to standby (one ruckig move)."""
+    def splice(self, update: Attempt, update_of: str) -> None:
+        """Closed loop: from its first sample's time on, follow ``update``'s trajectory
+        instead (the executing plan ``update_of`` moved to a newer prediction), towards its
+        grasp point; raises ValueError if that plan is not the one executing."""
+        a = self.attempt
+        if a is None or a.plan_id != update_of:
+            raise ValueError(f"update {update.plan_id}: plan {update_of} is not executing")
+        keep = a.times < update.times[0] - 1e-9
+        a.times = np.concatenate([a.times[keep], update.times])
+        a.q, a.qd = np.vstack([a.q[keep], update.q]), np.vstack([a.qd[keep], update.qd])
+        a.p_f, a.t_close, a.final_from = update.p_f, update.t_close, update.final_from
+        if update.predicted is not None:  # judged against the prediction it follows now
+            a.predicted, a.approved_at = update.predicted, self.world.time_s
+
+    def abort(self, reason: str) -> Result:
+        """Stop the attempt as the gate asked: open the jaw, back out along the approach
+        and return to standby."""
+        a = self.attempt
+        assert a is not None
+        return self._finish(Result(a.plan_id, False, None, {
+            "reason": reason, "before_grasp_s": a.t_grasp - self.world.time_s}, aborted=True),
+            back_m=self.cfg.retreat_m)
+
+    def _finish(self, result: Result, back_m: float = 0.0) -> Result:
+        """Open the jaw and head back to standby (ruckig, from the arm's state), first
+        ``back_m`` metres back along the approach if that is reachable."""
         w, arm = self.world, self.world.arm
         standby = arm.q_home if self.attempt is None or self.attempt.standby is None else \
             np.clip(self.attempt.standby, arm.lower, arm.upper)
         self.attempt = None
         w.set_jaw(arm.jaw_max_opening_m)
-        q, _ = w.arm_q()
-        move = segment(q, np.zeros(len(q)), np.zeros(len(q)), standby, np.zeros(len(q)),
-                       Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk))
-        if move is not None:
-            self._return = sample_segment(move, w.time_s, 0.02)
+        q, qd = w.arm_q()
+        limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
+        zero = np.zeros(len(q))
+        stops = [standby]
+        if back_m > 0:
+            T = arm.forward(q)
+            T[:3, 3] -= back_m * T[:3, 2]
+            q_back = arm.inverse(T, q)
+            stops = [standby] if q_back is None else [q_back, standby]
+        t, pieces = w.time_s, []
+        for target in stops:
+            move = segment(q, np.clip(qd, -limits.velocity, limits.velocity), zero, target,
+                           zero, limits)
+            if move is None:
+                break
+            piece = sample_segment(move, t, 0.02)
+            pieces.append(tuple(x[1:] for x in piece) if pieces else piece)  # joined once
+            t, q, qd = piece[0][-1], target, zero
+        if pieces:
+            self._return = tuple(np.concatenate(x) if x[0].ndim == 1 else np.vstack(x)
+                                 for x in zip(*pieces, strict=True))
         return result
 
     def go_to_standby(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray) -> None:

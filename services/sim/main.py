@@ -37,6 +37,7 @@ from wavegrasp.schemas import (
     ArmStandby,
     ArmState,
     FrameAck,
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -105,6 +106,8 @@ class SimService(Service):
         self._mesh: np.ndarray | None = None  # vertices of a mesh not in the scene yet
         self._truths = 0  # ground truths received (their attachments' sequence + 1)
         self._go: Attempt | None = None  # approved this frame, not started yet
+        self._splice: tuple[str, Attempt] | None = None  # an update approved this frame
+        self._abort: GateAbort | None = None  # the gate's abort this frame
         self._standby: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # asked for
         self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
         self._plans_flow = False  # a warm prediction or a decision has come: trials begin
@@ -121,6 +124,7 @@ class SimService(Service):
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/planner/standby", self.on_standby, ArmStandby)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
+        self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
         self.bus.subscribe("wavegrasp/player/status", self.on_player_status, PlayerStatus)
 
     def resume(self, state: dict | None) -> None:
@@ -302,10 +306,38 @@ class SimService(Service):
                            f"decision for plan {plan_id} that never arrived")
 
     def approve(self, plan: GraspPlan) -> None:
-        """Take an approved plan; it starts at the end of the frame (below)."""
+        """Take an approved plan, or an update of the executing one; it starts (is spliced
+        in) at the end of the frame (below)."""
         attempt = Attempt.from_message(plan, self.arm.joint_names)
         attempt.predicted = self.predictions.get(plan.header.seq)
+        if plan.update_of is not None:
+            self._splice = (plan.update_of, attempt)
+            return
         self._go = attempt  # started when the frame finishes (below)
+
+    def on_abort(self, msg: GateAbort, _d: Delivery) -> None:
+        """Kept for the frame's end, like an approval."""
+        self._abort = msg
+
+    def apply_abort_and_update(self) -> None:
+        """At the frame's end: the gate's abort of the executing attempt (it retreats), else
+        an approved update of it (spliced in)."""
+        abort, self._abort = self._abort, None
+        splice, self._splice = self._splice, None
+        attempt = self.executor.attempt if self.executor is not None else None
+        if abort is not None:
+            if attempt is not None and attempt.plan_id == abort.plan_id:
+                self.publish_outcome(self.executor.abort(abort.reason))
+            else:
+                self.counters["aborts ignored: not executing"] += 1
+        if splice is not None:
+            try:
+                if self.executor is None:
+                    raise ValueError("no scene yet")
+                self.executor.splice(splice[1], splice[0])
+                self.counters["updates spliced"] += 1
+            except ValueError:
+                self.counters["updates ignored: not executing"] += 1
 
     def start_attempt(self) -> None:
         """Start the plan approved in this frame, at the frame's end, where every ground truth
@@ -363,13 +395,15 @@ class SimService(Service):
 
     def publish_outcome(self, result: Result) -> None:
         """Publish an attempt's result; a success or the last attempt ends the trial."""
-        self.counters["success" if result.success else f"failure: {result.failure}"] += 1
+        self.counters["success" if result.success else "aborted" if result.aborted
+                      else f"failure: {result.failure}"] += 1
         self._executing = None
         assert self.world is not None
         self.bus.publish(OUTCOME_KEY, GraspOutcome(
             header=new_header(self.name, self.attempt, int(round(self.world.time_s * 1e9))),
             plan_id=result.plan_id, trial=self.trial, attempt=self.attempt,
-            success=result.success, failure=result.failure, evidence=result.evidence))
+            success=result.success, failure=result.failure, evidence=result.evidence,
+            aborted=result.aborted))
         self._idle_since = self.world.time_s
         if result.success or self.attempt >= self.cfg.attempts:
             self.trial += 1
@@ -404,6 +438,7 @@ class SimService(Service):
         if self._idle_since is None and self._plans_flow:  # trial 0 begins
             self._idle_since = self.world.time_s
         self.start_attempt()
+        self.apply_abort_and_update()
         self.start_standby()
         if self.executor is not None:
             self.check_trial_timeout()
