@@ -7,11 +7,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_planner import BODY, T_world_base, arm, prediction  # noqa: F401 (fixtures)
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.update import state_at, update_plan
+from wavegrasp.sim.executor import Attempt, Executor, Result
+from wavegrasp.sim.world import SimWorld
+
+from test_planner import BODY, T_world_base, arm, prediction  # noqa: F401 (fixtures)
+from test_sim import CAN, UPRIGHT, plan_for, swing
+from test_sim import NOW as SIM_NOW
 
 NOW = 10.0
 
@@ -71,3 +76,80 @@ def test_an_update_refuses_what_it_cannot_do(arm: ArmModel, T_world_base: np.nda
     late = approved.t_grasp - 0.05
     assert update_plan(approved, moved((0.0, 0.0, 0.01), late), late, arm, T_world_base, BODY,
                        cfg) == "too late"
+
+
+def follow(arm: ArmModel, T_world_base: np.ndarray, truth, closed: bool,  # noqa: F811
+           abort_at: float | None = None) -> tuple[Result, set[str]]:
+    """One attempt in PyBullet planned on the swing as it was (test_sim's can) at test_sim's
+    NOW, the object moving as ``truth``; ``closed``: every 0.1 s the plan is moved to a
+    prediction of the object as it moves now (``truth`` from then on, what a good predictor
+    would say) and spliced in, as the planner and the sim do; ``abort_at``: the gate aborts
+    then. Returns the result and the arm's links that touched the object before the attempt
+    was judged (and, once aborted, on its way back to standby)."""
+    plan, path = plan_for(arm, T_world_base)
+    attempt = Attempt("p", plan.times, plan.q, plan.qd, plan.t_grasp, plan.grasp_T_world[:3, 3],
+                      plan.t_final, plan.jaw_preshape_m, plan.t_close,
+                      (path.times_s, path.positions), SIM_NOW)
+    world = SimWorld(arm, T_world_base, CAN)
+    touched: set[str] = set()
+    cfg = PlannerConfig()
+    try:
+        world.place_object(truth(SIM_NOW), UPRIGHT)
+        world.step_to(SIM_NOW)
+        executor = Executor(world)
+        executor.start(attempt)
+        result = None
+        for k, t in enumerate(SIM_NOW + np.arange(1, 600) * 0.01):
+            if closed and k % 10 == 0 and executor.attempt is not None:
+                ahead = t + np.arange(41) * 0.1
+                now_path = replace(path, times_s=ahead,
+                                   positions=np.array([truth(x) for x in ahead]))
+                moved_plan = update_plan(plan, now_path, t, arm, T_world_base, BODY, cfg)
+                if isinstance(moved_plan, Plan):
+                    plan = moved_plan
+                    keep = plan.times >= t + cfg.update_delay_s - 1e-9
+                    executor.splice(Attempt("u", plan.times[keep], plan.q[keep],
+                                            plan.qd[keep], plan.t_grasp,
+                                            plan.grasp_T_world[:3, 3], plan.t_final,
+                                            plan.jaw_preshape_m, plan.t_close), "p")
+            if abort_at is not None and t >= abort_at and executor.attempt is not None:
+                result = executor.abort("test")
+            judged = executor.advance(t, truth(t), UPRIGHT)
+            result = result or judged
+            touched |= {world.link_names[i] for i in world.contacts()}
+            if result is not None and not executor.busy:
+                return result, touched
+            if result is not None and not result.aborted:
+                return result, touched
+        raise AssertionError("the attempt was never judged or never got back")
+    finally:
+        world.close()
+
+
+def carried(by: tuple[float, float, float], after_s: float):
+    """test_sim's swing, carried ``by`` metres over 0.3 s from ``after_s`` after NOW on."""
+    def truth(t: float) -> np.ndarray:
+        return swing(t) + np.array(by) * min(max(t - SIM_NOW - after_s, 0.0) / 0.3, 1.0)
+    return truth
+
+
+def test_a_target_that_moves_3_cm_after_approval_is_still_grasped(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:  # noqa: F811
+    plan, _ = plan_for(arm, T_world_base)
+    across = plan.grasp_T_world[:3, 0]  # the way the jaw closes: 3 cm is past a finger
+    truth = carried(tuple(0.03 * across), 0.4)  # 0.4 s after approval
+    result, _ = follow(arm, T_world_base, truth, closed=True)
+    assert result.success, result
+    # Open loop, as the paper executes, the same attempt misses it.
+    result, _ = follow(arm, T_world_base, truth, closed=False)
+    assert not result.success, result
+
+
+def test_an_abort_during_the_approach_retreats_without_touching_the_object(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:  # noqa: F811
+    plan, _ = plan_for(arm, T_world_base)
+    during = (plan.knots[0] + plan.t_final) / 2  # well into the approach
+    result, touched = follow(arm, T_world_base, swing, closed=False, abort_at=during)
+    assert result.aborted and not result.success and result.failure is None, result
+    assert result.evidence["reason"] == "test" and result.evidence["before_grasp_s"] > 0
+    assert not touched, touched

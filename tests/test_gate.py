@@ -314,3 +314,45 @@ def test_gate_service_on_an_isolated_bus() -> None:
             token.undeclare()
     finally:
         bus.close()
+
+
+def test_closed_loop_watch_aborts_an_executing_plan_past_its_limits() -> None:
+    """While a plan executes, the gate aborts it when the newest prediction puts the object
+    far from the grasp point, and when its predictions go stale; never in open loop."""
+    gate = Gate()
+    feed(gate)
+    assert decide(gate, plan(3.0, 3.3, 4.5), now_s=3.05).go
+    assert gate.watch(ns(3.05)) is None  # all well
+    # Updates are approved while it executes; a plan not executing is not updated.
+    update = plan(3.1, 3.2, 4.5, plan_id="p1-u").model_copy(update={"update_of": "p1"})
+    assert decide(gate, update, now_s=3.1).go
+    stray = update.model_copy(update={"update_of": "p9"})
+    assert decide(gate, stray, now_s=3.1).failed == ["not executing"]
+    # The object carried 5 cm away: the newest prediction says it will be there at the grasp.
+    feed(gate, 3.1, 3.2, offset=(0.0, 0.05, 0.0))
+    plan_id, kind, reason, value, limit = gate.watch(ns(3.2))
+    assert (plan_id, kind) == ("p1", "prediction moved") and value == pytest.approx(0.05, 0.05)
+    assert "50 mm from the grasp point" in reason and limit == gate.config.abort_miss_m
+
+
+def test_closed_loop_watch_aborts_when_predictions_go_stale() -> None:
+    gate = Gate()
+    feed(gate)
+    assert decide(gate, plan(3.0, 3.3, 4.5), now_s=3.05).go
+    for k in range(1, 8):  # the camera goes on, the predictor has gone silent
+        gate.on_observation(observation(3.0 + k / 10, np.zeros(3)))
+    _, kind, reason, value, _ = gate.watch(ns(3.7))
+    assert kind == "stale prediction" and value == pytest.approx(0.7)
+    assert reason == "stale prediction: 0.70 s old"
+    # After the grasp time there is nothing left to abort.
+    assert gate.watch(ns(4.6)) is None
+
+
+def test_open_loop_never_aborts_nor_updates() -> None:
+    gate = Gate(GateConfig(execution="open"))
+    feed(gate)
+    assert decide(gate, plan(3.0, 3.3, 4.5), now_s=3.05).go
+    feed(gate, 3.1, 3.2, offset=(0.0, 0.05, 0.0))
+    assert gate.watch(ns(3.2)) is None
+    update = plan(3.1, 3.2, 4.5, plan_id="p1-u").model_copy(update={"update_of": "p1"})
+    assert "open loop" in decide(gate, update, now_s=3.1).failed
