@@ -48,10 +48,11 @@ def test_the_report_gives_each_sea_its_own_rows(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "report.json").read_text())["runs"][1]["sea"] == "jonswap"
 
 
-def run_eval(out: Path) -> dict:
+def run_eval(out: Path, *extra: str) -> dict:
     result = subprocess.run(wavegrasp_cmd(
         "eval", "--out", str(out), "--trials", "2", "--waves", "2", "--objects", "can_half",
-        "--predictors", "blend", "--jobs", "1"), capture_output=True, text=True, timeout=600)
+        "--predictors", "blend", "--jobs", "1", *extra), capture_output=True, text=True,
+        timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return json.loads((out / "report.json").read_text())
 
@@ -73,3 +74,20 @@ def test_a_small_experiment_end_to_end_repeats_exactly(tmp_path: Path) -> None:
     again = run_eval(tmp_path / "again")  # lockstep: the same trials, attempt for attempt
     assert again["runs"][0]["success_attempt"] == run["success_attempt"]
     assert again["runs"][0]["failures"] == run["failures"]
+
+
+#: The outcomes of ``run_eval`` on 6ebd9f1, before closed-loop execution existed
+#: (tests/data/open-loop-outcomes.json: plan_id, trial, attempt, success, failure of each).
+BEFORE = Path(__file__).with_name("data") / "open-loop-outcomes.json"
+
+
+def test_open_loop_repeats_the_outcomes_from_before_closed_loop_execution(
+        tmp_path: Path) -> None:
+    out = tmp_path / "open"
+    run_eval(out, "--executions", "open")
+    summary = json.loads((out / "runs" / "blend-open-wave2-can_half" / "summary.json"
+                          ).read_text())
+    fields = ("plan_id", "trial", "attempt", "success", "failure")
+    got = [{k: o[k] for k in fields} for o in summary["outcomes"]]
+    assert got == json.loads(BEFORE.read_text())
+    assert not any(o["aborted"] for o in summary["outcomes"])
