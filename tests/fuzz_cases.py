@@ -26,6 +26,7 @@ from wavegrasp.schemas import (
     CartesianSample,
     Clock,
     FrameAck,
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -389,6 +390,8 @@ EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
     GateDecision: lambda: GateDecision(header=header(10**18), plan_id="p", go=False,
                                        mean_error_m=0.004, threshold_m=0.01, window_s=2.0,
                                        reason="warming up"),
+    GateAbort: lambda: GateAbort(header=header(10**18), plan_id="p", reason="stale "
+                                 "prediction: 0.70 s old", value=0.7, limit=0.5),
     GraspOutcome: lambda: GraspOutcome(header=header(10**18), plan_id="p", trial=0, attempt=1,
                                        success=False, failure="timing",
                                        evidence={"object_passed_s": 0.2, "arm": "late"}),

@@ -18,6 +18,7 @@ from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
     ArmState,
     Clock,
+    GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
@@ -228,6 +229,9 @@ class PlannerScenario(Scenario):
         if key == "wavegrasp/sim/outcome":
             return message_case("valid", GraspOutcome(header=header(t), plan_id="x", trial=0,
                                                       attempt=1, success=False))
+        if key == "wavegrasp/gate/abort":  # of a plan not executing: nothing to stop
+            return message_case("valid", GateAbort(header=header(t), plan_id="x",
+                                                   reason="stale prediction"))
         if key == "wavegrasp/predictor/prediction":
             return message_case("valid", self.prediction(warm=False))
         return super().valid(key)

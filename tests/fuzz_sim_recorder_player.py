@@ -21,6 +21,7 @@ from wavegrasp.schemas import (
     ArmStandby,
     ArmState,
     FrameAck,
+    GateAbort,
     GateDecision,
     JointSample,
     ObjectMesh,
@@ -110,6 +111,9 @@ class SimScenario(Scenario):
             return message_case("valid", GateDecision(header=header(t), plan_id="stored",
                                                       go=False, mean_error_m=None,
                                                       threshold_m=0.01, window_s=2.0))
+        if key == "wavegrasp/gate/abort":  # of a plan not executing: nothing to stop
+            return message_case("valid", GateAbort(header=header(t), plan_id="stored",
+                                                   reason="stale prediction"))
         return super().valid(key)
 
     @staticmethod
