@@ -332,7 +332,8 @@ def test_closed_loop_watch_aborts_an_executing_plan_past_its_limits() -> None:
     feed(gate, 3.1, 3.2, offset=(0.0, 0.05, 0.0))
     plan_id, kind, reason, value, limit = gate.watch(ns(3.2))
     assert (plan_id, kind) == ("p1", "prediction moved") and value == pytest.approx(0.05, 0.05)
-    assert "50 mm from the grasp point" in reason and limit == gate.config.abort_miss_m
+    # its own sigma there: 5 mm (test prediction), the limit 3 cm + 2 sigma
+    assert "50 mm from the grasp point (limit 40 mm)" in reason and limit == pytest.approx(0.04)
 
 
 def test_closed_loop_watch_aborts_when_predictions_go_stale() -> None:

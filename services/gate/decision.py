@@ -64,7 +64,8 @@ class GateConfig(BaseModel):
                                  "and updates follow the object)")
     abort_miss_m: float = Field(0.03, gt=0, description="abort: the newest prediction puts the "
                                 "object this far from the grasp point the arm goes to at the "
-                                "grasp time (no update could follow it)")
+                                "grasp time (no update could follow it), beyond twice its own "
+                                "sigma there")
     required_services: list[str] = Field(
         default_factory=lambda: ["perception", "predictor", "planner"],
         description="upstream services whose liveliness token must be up")
@@ -84,11 +85,13 @@ class ErrorSample:
 
 @dataclass(frozen=True)
 class _Track:
-    """A stored prediction: made at ``made_ns``; samples ``t_ns`` (n,) and ``xyz`` (n, 3), m."""
+    """A stored prediction: made at ``made_ns``; samples ``t_ns`` (n,), ``xyz`` (n, 3), m,
+    and their 1-sigma ``sigma`` (n,), m."""
 
     made_ns: int
     t_ns: np.ndarray
     xyz: np.ndarray
+    sigma: np.ndarray
 
     @cached_property
     def spline(self):  # noqa: ANN201 (scipy's CubicSpline, seconds after the first sample)
@@ -153,7 +156,7 @@ class Gate:
             raise ValueError("prediction samples with non-finite positions")
         made = pred.header.stamp_ns
         self._check_time(made, self.tracks[-1].made_ns if self.tracks else None)
-        track = _Track(made, t, xyz)
+        track = _Track(made, t, xyz, np.array([s.sigma for s in pred.samples], dtype=float))
         bisect.insort(self.tracks, track, key=lambda tr: tr.made_ns)
         del self.tracks[:-MAX_PREDICTIONS]
 
@@ -369,10 +372,15 @@ class Gate:
                     f"{cfg.abort_error_m * 1e3:.1f} mm", mean, cfg.abort_error_m)
         assert newest is not None
         if newest.t_ns[0] <= t_grasp_ns <= newest.t_ns[-1]:
+            # A forecast as unsure as the miss says little yet: an irregular sea's forecast
+            # seconds ahead is off by centimetres and comes back (measured on the JONSWAP
+            # tank: 15 of 28 attempts aborted at a flat 3 cm, where open loop grasped 60 %).
             miss = float(np.linalg.norm(newest.at(t_grasp_ns) - point))
-            if miss > cfg.abort_miss_m:
+            limit = cfg.abort_miss_m + 2.0 * float(np.interp(t_grasp_ns, newest.t_ns,
+                                                             newest.sigma))
+            if miss > limit:
                 return (plan_id, "prediction moved", f"the object will be {miss * 1e3:.0f} "
-                        "mm from the grasp point", miss, cfg.abort_miss_m)
+                        f"mm from the grasp point (limit {limit * 1e3:.0f} mm)", miss, limit)
         return None
 
     def _freshness(self, plan: GraspPlan, now_ns: int) -> list[tuple[str, str]]:
