@@ -6,8 +6,9 @@ the grasp point's shift and are solved again (each from the moved grasp's joint 
 the arm stays on its branch). From ``update_delay_s`` after the prediction (the time to be
 approved and reach the arm) ruckig takes the arm from the state the current trajectory gives
 it then (position, velocity, acceleration), inside the arm's limits: before the approach,
-to the moved P_init by the time the approach begins; during it, onto the moved approach
-within ``splice_s`` (or a few times that), the way ros2_control's
+to the moved P_init by the time the approach begins; during it (or where the approach begins
+too soon for that), onto the moved approach ``splice_s`` (or a few times that) into it, the
+way ros2_control's
 joint_trajectory_controller splices a new trajectory into the one it runs. The grasp time
 stays.
 
@@ -75,14 +76,12 @@ def update_plan(plan: Plan, path: PredictedPath, now: float, arm: ArmModel,
     spline = CubicSpline(plan.knots, qs, bc_type="clamped")
     limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
     dt = cfg.sample_dt_s
-    if t_take < plan.knots[0]:
-        pieces = _to_p_init(plan, qs[0], t_take, limits, dt)
-        if pieces is None:
-            return "cannot splice"
+    pieces = _to_p_init(plan, qs[0], t_take, limits, dt) if t_take < plan.knots[0] else None
+    if pieces is not None:
         t_app = plan.times[plan.times >= plan.knots[0]]
         times = np.concatenate([pieces[0], t_app])
         q, qd = np.vstack([pieces[1], spline(t_app)]), np.vstack([pieces[2], spline(t_app, 1)])
-    else:
+    else:  # in the approach, or too near its start to be at rest at P_init first
         joined = _join(plan, spline, t_take, limits, cfg.splice_s, dt)
         if joined is None:
             return "cannot splice"
@@ -127,14 +126,14 @@ def _to_p_init(plan: Plan, q_init: np.ndarray, t_take: float, limits: Limits, dt
 
 def _join(plan: Plan, spline: CubicSpline, t_take: float, limits: Limits, splice_s: float,
           dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """During the approach: a ruckig move from the arm's state at ``t_take`` onto the moved
-    approach ``spline`` within ``splice_s`` (else two or three times that, at most by the
-    grasp time), then the spline. Times (k,), positions and velocities (k, n), or None if
-    not within the arm's limits."""
+    """A ruckig move from the arm's state at ``t_take`` onto the moved approach ``spline``
+    ``splice_s`` into it (else two or three times that, at most by the grasp time), then the
+    spline. Times (k,), positions and velocities (k, n), or None if not within the arm's
+    limits."""
     state = state_at(plan.times, plan.q, plan.qd, t_take)
     for k in (1, 2, 3):
-        join = min(k * splice_s, plan.t_grasp - t_take)
-        t_join = t_take + join
+        t_join = min(max(t_take, plan.knots[0]) + k * splice_s, plan.t_grasp)
+        join = t_join - t_take
         move = segment(*state, spline(t_join), spline(t_join, 1), limits, min_duration=join,
                        a1=spline(t_join, 2))
         if move is not None and move.duration <= join + 1e-3:
