@@ -125,7 +125,7 @@ class PlannerService(Service):
         self.arm = ArmModel.load(settings.arm_urdf or None)  # before the bus: fail cleanly
         super().__init__(settings, bus)
         self.cfg = settings
-        self.config = PlannerConfig()
+        self.config = PlannerConfig(closed_loop=settings.execution == "closed")
         self.tf = StaticTransforms()
         self.q_now = self.arm.q_home.copy()
         self.arm_moving = False

@@ -95,6 +95,13 @@ class PlannerConfig(BaseModel):
                                       "prediction's own 1σ exceeds this are not tried (None: "
                                       "half the jaw's widest opening: the object would as "
                                       "likely be outside the open jaw as inside it)")
+    closed_loop: bool = Field(False, description="execution follows every new prediction "
+                              "(:mod:`wavegrasp.planner.update`): a grasp time need not be "
+                              "trusted when planned, only the forecast of its last "
+                              "corrections, closed_loop_lead_s ahead")
+    closed_loop_lead_s: float = Field(0.5, description="the lead at which the last "
+                                      "corrections of a closed-loop approach are made: the "
+                                      "prediction's 1-sigma there must be within max_sigma_m")
     ik_max_iter: int = 40
     ik_restarts: int = 0
     update_delay_s: float = Field(0.1, description="closed loop: an update takes over this "
@@ -181,6 +188,13 @@ def plan_grasp(path: PredictedPath, now: float, arm: ArmModel, T_world_base: np.
     need, tried, used = 0.0, 0, 0
     candidates: list[np.ndarray] = []
     max_sigma = cfg.max_sigma_m if cfg.max_sigma_m is not None else arm.jaw_max_opening_m / 2
+    if cfg.closed_loop:
+        # Corrected on the way, the grasp goes where the object is forecast a moment before
+        # it: JONSWAP wave 1's forecast of the buoy 1.5 s ahead is 74 mm uncertain (median),
+        # 0.5 s ahead 42 mm, and open loop's 70 mm limit on the grasp time left 722 of 801
+        # of its predictions unplanned.
+        late = float(np.interp(now + cfg.closed_loop_lead_s, path.times_s, path.sigma))
+        max_sigma = np.inf if late <= max_sigma else -np.inf
     times = grasp_times(path, earliest, cfg.grasp_time, max_sigma_m=max_sigma)
     if not times and (path.times_s >= earliest).any():
         rejected["prediction too uncertain"] += 1
