@@ -153,3 +153,21 @@ def test_an_abort_during_the_approach_retreats_without_touching_the_object(
     assert result.aborted and not result.success and result.failure is None, result
     assert result.evidence["reason"] == "test" and result.evidence["before_grasp_s"] > 0
     assert not touched, touched
+
+
+def test_closed_loop_plans_where_only_the_forecast_of_its_last_corrections_is_trusted(
+        arm: ArmModel, T_world_base: np.ndarray) -> None:  # noqa: F811
+    """An irregular sea's forecast: sure half a second ahead, 10 cm unsure from 1 s on. Open
+    loop trusts no grasp time; closed loop plans, its grasp corrected on the way."""
+    path = prediction(NOW)
+    lead = path.times_s - NOW
+    unsure = replace(path, sigma=np.where(lead <= 0.6, 0.01, 0.10))
+    assert plan_grasp(unsure, NOW, arm, T_world_base, arm.q_home, BODY,
+                      PlannerConfig()) == {"prediction too uncertain": 1}
+    plan = plan_grasp(unsure, NOW, arm, T_world_base, arm.q_home, BODY,
+                      PlannerConfig(closed_loop=True))
+    assert isinstance(plan, Plan), plan
+    # Unsure half a second ahead too: nothing to correct towards.
+    blind = replace(path, sigma=np.full(len(lead), 0.10))
+    assert plan_grasp(blind, NOW, arm, T_world_base, arm.q_home, BODY,
+                      PlannerConfig(closed_loop=True)) == {"prediction too uncertain": 1}
