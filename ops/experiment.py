@@ -49,6 +49,8 @@ class Trials:
     unfinished: int = 0
     seconds: float = 0.0
     exit_code: int = 0
+    #: Per attempt, recording seconds from its approval to its grasp time.
+    approval_to_grasp_s: list[float] = field(default_factory=list)
 
     def rate(self, within: int) -> float:
         """Share of the trials that succeeded within ``within`` attempts."""
@@ -97,6 +99,12 @@ def trial_results(outcomes: list[dict], trials: int, attempts: int
     return success, failures, sum(not e for e in ended)
 
 
+def approval_times(outcomes: list[dict]) -> list[float]:
+    """Each attempt's seconds from its approval to its grasp time (its outcome's evidence)."""
+    return [float(o["evidence"]["approval_to_grasp_s"]) for o in outcomes
+            if "approval_to_grasp_s" in o["evidence"]]
+
+
 def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
                   attempts: int, execution: str = "closed") -> tuple[dict, float, int]:
     """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``:
@@ -132,7 +140,8 @@ def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trial
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
     return RunResult(predictor, wave, obj, sea, execution, trials=trials,
                      success_attempt=success, failures=failures, unfinished=unfinished,
-                     seconds=seconds, exit_code=code)
+                     seconds=seconds, exit_code=code,
+                     approval_to_grasp_s=approval_times(summary.get("outcomes", [])))
 
 
 def main(argv: list[str] | None = None) -> int:

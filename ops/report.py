@@ -61,6 +61,15 @@ def markdown(results: list, settings: dict) -> str:
         counts = [sum(r.failures.get(k, 0) for r in results if r.label == p)
                   for k in FAILURES]
         lines.append(f"| {p} | " + " | ".join(str(c) for c in counts) + " |")
+    lines += ["", "Attempts, aborts (closed loop) and time from approval to grasp (recording s):",
+              "", "| predictor | attempts | aborted | approval to grasp, median | p90 |",
+              "|---|---|---|---|---|"]
+    for p in predictors:
+        times = [t for r in results if r.label == p for t in r.approval_to_grasp_s]
+        aborted = sum(r.failures.get("aborted", 0) for r in results if r.label == p)
+        median, p90 = [f"{np.percentile(times, q):.2f}" for q in (50, 90)] if times else [
+            "--", "--"]
+        lines.append(f"| {p} | {len(times)} | {aborted} | {median} | {p90} |")
     lines += unfinished_lines(results)
     lines += ["", "![success](success.png)", "", "![failures](failures.png)", ""]
     return "\n".join(lines)

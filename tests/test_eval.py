@@ -38,13 +38,17 @@ def test_trials_are_counted_from_the_outcomes() -> None:
 def test_the_report_gives_each_sea_its_own_rows(tmp_path: Path) -> None:
     from wavegrasp.ops.report import write_report
 
-    runs = [RunResult("blend", 2, "can_half", sea, trials=2, success_attempt=attempts)
-            for sea, attempts in (("regular", [1, 1]), ("jonswap", [2, 0]))]
+    runs = [RunResult("blend", 2, "can_half", sea, trials=2, success_attempt=attempts,
+                      approval_to_grasp_s=times, failures=failures)
+            for sea, attempts, times, failures in (
+                ("regular", [1, 1], [1.0, 1.2], {}),
+                ("jonswap", [2, 0], [1.4, 2.0, 3.0, 2.2, 2.6], {"aborted": 1}))]
     write_report(tmp_path, runs, {"trials": 2, "attempts": 3, "seed": 0, "elapsed_s": 60.0})
     md = (tmp_path / "report.md").read_text()
     assert "| regular | 2 | can_half | 100% / 100% |" in md
     assert "| jonswap | 2 | can_half | 0% / 50% |" in md
     assert "**50.0% / 75.0%**" in md  # the mean over both
+    assert "| blend | 7 | 1 | 2.00 | 2.76 |" in md  # attempts, aborts, approval to grasp
     assert json.loads((tmp_path / "report.json").read_text())["runs"][1]["sea"] == "jonswap"
 
 

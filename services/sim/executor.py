@@ -121,6 +121,7 @@ class Executor:
         self._tool_at_grasp: np.ndarray | None = None
         self._closing = self._preshaped = False
         self._return: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._started_at = 0.0
         names = world.link_names
         self._finger_names = {names[i] for i in world.finger_links}
         self._names = names
@@ -144,6 +145,7 @@ class Executor:
         if self.busy:
             raise ValueError(f"plan {attempt.plan_id}: another is executing")
         self.attempt = attempt
+        self._started_at = self.world.time_s  # approved (updates do not move it)
         self._truth, self._touched = [], {}
         self._tool_at_grasp, self._closing, self._preshaped = None, False, False
         self.world.set_jaw(self.world.arm.jaw_max_opening_m)
@@ -197,6 +199,7 @@ class Executor:
         offset = w.object_position() - tool
         depth = float(offset @ R_world_tool[:, 2])
         evidence: dict[str, float | str | bool] = {
+            "approval_to_grasp_s": a.t_grasp - self._started_at,
             "fingers_touching": len(touching & self._finger_names),
             "object_from_tool_m": float(np.linalg.norm(offset)),
             "object_in_jaw_m": depth, "jaw_opening_m": w.jaw_opening()}
@@ -265,7 +268,8 @@ class Executor:
         a = self.attempt
         assert a is not None
         return self._finish(Result(a.plan_id, False, None, {
-            "reason": reason, "before_grasp_s": a.t_grasp - self.world.time_s}, aborted=True),
+            "reason": reason, "before_grasp_s": a.t_grasp - self.world.time_s,
+            "approval_to_grasp_s": a.t_grasp - self._started_at}, aborted=True),
             back_m=self.cfg.retreat_m)
 
     def _finish(self, result: Result, back_m: float = 0.0) -> Result:
