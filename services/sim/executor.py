@@ -299,8 +299,7 @@ class Executor:
             pieces.append(tuple(x[1:] for x in piece) if pieces else piece)  # joined once
             t, q, qd = piece[0][-1], target, zero
         if pieces:
-            self._return = tuple(np.concatenate(x) if x[0].ndim == 1 else np.vstack(x)
-                                 for x in zip(*pieces, strict=True))
+            self._return = tuple(np.concatenate(x) for x in zip(*pieces, strict=True))
         return result
 
     def go_to_standby(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray) -> None:
