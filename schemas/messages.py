@@ -207,6 +207,9 @@ class GraspPlan(Message):
         None, description="closed-loop execution: this plan moves the executing plan of this "
         "plan_id to a newer prediction; its joint_trajectory starts where it takes over (the "
         "arm splices it in) and ends at the grasp")
+    t_contact_ns: Nanoseconds | None = Field(
+        None, description="closed-loop update: when, on the prediction it was made from, the "
+        "arm would first touch the object before the final move; None: it keeps clear")
 
     @field_validator("joint_trajectory")
     @classmethod

@@ -66,6 +66,10 @@ class GateConfig(BaseModel):
                                 "object this far from the grasp point the arm goes to at the "
                                 "grasp time (no update could follow it), beyond twice its own "
                                 "sigma there")
+    abort_contact_s: float = Field(1.0, ge=0, description="abort: the last update approved "
+                                   "has the arm touching the object before its final move "
+                                   "within this many seconds (its t_contact_ns; a forecast "
+                                   "this short is sure to millimetres), s")
     required_services: list[str] = Field(
         default_factory=lambda: ["perception", "predictor", "planner"],
         description="upstream services whose liveliness token must be up")
@@ -125,8 +129,9 @@ class Gate:
         self.arrivals: deque[int] = deque(maxlen=21)
         self.executing: dict[str, int] = {}  # approved plan id -> until (ns)
         #: Closed loop: the executing plan's id and where and when it grasps (the last
-        #: approved update's grasp point, metres, world; t_grasp ns).
-        self.grasp: tuple[str, np.ndarray, int] | None = None
+        #: approved update's grasp point, metres, world; t_grasp ns), and when that update
+        #: has the arm touch the object (ns; None: it keeps clear).
+        self.grasp: tuple[str, np.ndarray, int, int | None] | None = None
         self.counts: Counter[str] = Counter()
 
     def reset(self) -> None:
@@ -304,7 +309,7 @@ class Gate:
         go = not failed
         if go:
             self.executing[plan.plan_id] = plan.t_grasp_ns + int(cfg.execution_hold_s * NS)
-            self.grasp = (plan.plan_id, _position(plan), plan.t_grasp_ns)
+            self.grasp = (plan.plan_id, _position(plan), plan.t_grasp_ns, None)
             reason = (f"go: error {mean * 1e3:.1f} mm <= {cfg.epsilon_m * 1e3:.1f} mm "
                       f"({len(errors)} errors)")
         else:
@@ -338,7 +343,7 @@ class Gate:
         go = not failed
         if go:
             self.executing[root] = plan.t_grasp_ns + int(cfg.execution_hold_s * NS)
-            self.grasp = (root, _position(plan), plan.t_grasp_ns)
+            self.grasp = (root, _position(plan), plan.t_grasp_ns, plan.t_contact_ns)
         return GateDecision(
             header=header if header is not None else plan.header.model_copy(deep=True),
             plan_id=plan.plan_id, go=go, mean_error_m=mean, threshold_m=cfg.abort_error_m,
@@ -352,11 +357,12 @@ class Gate:
         is well. Past the limits:
         the mean error ē (``abort_error_m``), the newest prediction's distance at the grasp
         time from the grasp point (``abort_miss_m``), the age of the newest observation or
-        prediction (``max_input_age_s``, recording seconds)."""
+        prediction (``max_input_age_s``, recording seconds), the time to where the last
+        update approved has the arm touch the object (``abort_contact_s``)."""
         cfg = self.config
         if cfg.execution != "closed" or self.grasp is None:
             return None
-        plan_id, point, t_grasp_ns = self.grasp
+        plan_id, point, t_grasp_ns, t_contact_ns = self.grasp
         if now_ns >= t_grasp_ns or plan_id not in self.executing:
             return None
         newest = self.tracks[-1] if self.tracks else None
@@ -370,6 +376,10 @@ class Gate:
         if mean is not None and mean > cfg.abort_error_m:
             return (plan_id, "tracking error", f"tracking error {mean * 1e3:.1f} mm > "
                     f"{cfg.abort_error_m * 1e3:.1f} mm", mean, cfg.abort_error_m)
+        if t_contact_ns is not None and (t_contact_ns - now_ns) / NS <= cfg.abort_contact_s:
+            ahead = (t_contact_ns - now_ns) / NS
+            return (plan_id, "contact ahead", f"the arm would touch the object in {ahead:.2f} s "
+                    f"(limit {cfg.abort_contact_s:.2f} s)", ahead, cfg.abort_contact_s)
         assert newest is not None
         if newest.t_ns[0] <= t_grasp_ns <= newest.t_ns[-1]:
             # A forecast as unsure as the miss says little yet: an irregular sea's forecast

@@ -301,6 +301,20 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
     return bool(np.any(gap < need))
 
 
+def first_contact(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
+                  path: PredictedPath, body: Body, final_from: float) -> float | None:
+    """The first of ``times`` (k,) s, before ``final_from``, at which a link of the arm at
+    ``q`` (k, n) radians touches the object on ``path`` (no clearance: a contact, not a
+    near miss); None if none does. In the final move the fingers may meet it."""
+    if not len(times):
+        return None
+    gap = _gaps(arm, T_world_base, times, q, path, body)
+    if arm.jaw_capsule_count:
+        gap[times >= final_from, -arm.jaw_capsule_count:] = np.inf
+    hit = np.flatnonzero(np.any(gap < 0.0, axis=1))
+    return float(times[hit[0]]) if len(hit) else None
+
+
 def _gaps(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
           path: PredictedPath, body: Body) -> np.ndarray:
     """Each link's gap, metres, to the object on ``path`` at ``times`` (k,) with the arm at

@@ -107,7 +107,8 @@ def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
         confidence=plan.confidence, waypoints=[Vec3.of(p) for p in plan.points],
         t_final_ns=ns(plan.t_final), jaw_preshape_m=plan.jaw_preshape_m,
         t_close_ns=ns(plan.t_close), candidates=candidates,
-        standby=[] if standby is None else standby.tolist(), update_of=update_of))
+        standby=[] if standby is None else standby.tolist(), update_of=update_of,
+        t_contact_ns=None if plan.t_contact is None else ns(plan.t_contact)))
 
 
 def poses(Ts: list[np.ndarray]) -> list[Pose]:
@@ -399,6 +400,8 @@ class PlannerService(Service):
             self.counters[f"update: {result}"] += 1
             return
         self.counters["updates"] += 1
+        if result.t_contact is not None:
+            self.counters["updates: contact ahead"] += 1
         standby = self.return_pose(T_world_base, msg.header.stamp_ns)
         sent = to_message(result, msg, d.recv_ns, self.arm, self.name, standby, update_of=root,
                           since=now + self.config.update_delay_s)

@@ -142,6 +142,9 @@ class Plan:
     knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
     qs: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     move_s: tuple[float, float] = (0.0, 0.0)
+    #: A closed-loop update: when, on the prediction it was made from, the arm would first
+    #: touch the object before the final move (s; None: it keeps clear).
+    t_contact: float | None = None
 
 
 #: How finely :func:`_again` looks between the prediction's samples, and how far either

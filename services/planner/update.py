@@ -24,7 +24,7 @@ from scipy.interpolate import CubicSpline
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.planner.approach import PredictedPath
-from wavegrasp.planner.collision import Body, collides
+from wavegrasp.planner.collision import Body, collides, first_contact
 from wavegrasp.planner.plan import Plan, PlannerConfig, approach_joints
 from wavegrasp.planner.timing import Limits, sample_segment, segment
 
@@ -50,7 +50,9 @@ def update_plan(plan: Plan, path: PredictedPath, now: float, arm: ArmModel,
     ``now`` + ``update_delay_s`` on; or why not: "unchanged" (moved less than
     ``update_min_m``), "moved too far", "too late" (the grasp is nearer than a splice),
     "unreachable", "cannot splice" (not within the arm's limits in ``splice_s``),
-    "collision" (the moved trajectory meets the object on ``path``)."""
+    "collision" (the moved trajectory meets the object on ``path`` where the one it replaces
+    keeps clear). Where both meet it, the moved plan's ``t_contact`` says when the arm would
+    first touch the object."""
     if not len(plan.knots):
         raise ValueError("plan has no approach knots: not one plan_grasp made")
     t_take = now + cfg.update_delay_s
@@ -93,11 +95,15 @@ def update_plan(plan: Plan, path: PredictedPath, now: float, arm: ArmModel,
     # reshapes the swing, not just moves it: in a run of the JONSWAP tank (wave 2, buoy),
     # of 239 updates refused for a collision, 179 had the old trajectory meeting the object
     # as newly predicted too; kept, the arm went on where the object would not be.
-    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, plan.t_final) and (
-            not collides(arm, T_world_base, plan.times[~keep], plan.q[~keep], path, body,
-                         cfg.clearance_m, plan.t_final)):
-        return "collision"
-    return replace(plan, times=np.concatenate([plan.times[keep], times]),
+    # Where both meet it, the update goes with when the arm would touch the object: the
+    # gate aborts an attempt heading into it (the arm backs out) rather than let it hit.
+    t_contact = None
+    if collides(arm, T_world_base, times, q, path, body, cfg.clearance_m, plan.t_final):
+        if not collides(arm, T_world_base, plan.times[~keep], plan.q[~keep], path, body,
+                        cfg.clearance_m, plan.t_final):
+            return "collision"
+        t_contact = first_contact(arm, T_world_base, times, q, path, body, plan.t_final)
+    return replace(plan, t_contact=t_contact, times=np.concatenate([plan.times[keep], times]),
                    q=np.vstack([plan.q[keep], q]), qd=np.vstack([plan.qd[keep], qd]),
                    tool=(T_world_base @ arm.forward_batch(np.vstack([plan.q[keep], q])))
                    [:, :3, 3], points=points, grasp_T_world=T_grasp, qs=qs)
