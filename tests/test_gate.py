@@ -357,3 +357,22 @@ def test_open_loop_never_aborts_nor_updates() -> None:
     assert gate.watch(ns(3.2)) is None
     update = plan(3.1, 3.2, 4.5, plan_id="p1-u").model_copy(update={"update_of": "p1"})
     assert "open loop" in decide(gate, update, now_s=3.1).failed
+
+
+def test_closed_loop_watch_aborts_an_update_heading_into_the_object() -> None:
+    """An update the planner found touching the object before its final move (its
+    t_contact_ns) is approved while the contact is far off, and aborted once it is within
+    abort_contact_s; a later update that keeps clear lifts it."""
+    gate = Gate()
+    feed(gate)
+    assert decide(gate, plan(3.0, 3.3, 4.5), now_s=3.05).go
+    update = plan(3.1, 3.2, 4.5, plan_id="p1-u").model_copy(
+        update={"update_of": "p1", "t_contact_ns": ns(4.3)})
+    assert decide(gate, update, now_s=3.1).go
+    assert gate.watch(ns(3.2)) is None  # 1.1 s ahead: the forecast may yet clear it
+    plan_id, kind, reason, value, limit = gate.watch(ns(3.4))
+    assert (plan_id, kind) == ("p1", "contact ahead") and value == pytest.approx(0.9)
+    assert reason == "the arm would touch the object in 0.90 s (limit 1.00 s)" and limit == 1.0
+    clear = plan(3.3, 3.5, 4.5, plan_id="p1-v").model_copy(update={"update_of": "p1"})
+    assert decide(gate, clear, now_s=3.4).go
+    assert gate.watch(ns(3.4)) is None
