@@ -67,7 +67,7 @@ class GateConfig(BaseModel):
                                 "grasp time (no update could follow it), beyond twice its own "
                                 "sigma there")
     abort_contact_s: float = Field(1.0, ge=0, description="abort: the last update approved "
-                                   "has the arm touching the object before its final move "
+                                   "has the arm surely inside the object before its final move "
                                    "within this many seconds (its t_contact_ns; a forecast "
                                    "this short is sure to millimetres), s")
     required_services: list[str] = Field(

@@ -303,15 +303,17 @@ def collides(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.n
 
 def first_contact(arm: ArmModel, T_world_base: np.ndarray, times: np.ndarray, q: np.ndarray,
                   path: PredictedPath, body: Body, final_from: float) -> float | None:
-    """The first of ``times`` (k,) s, before ``final_from``, at which a link of the arm at
-    ``q`` (k, n) radians touches the object on ``path`` (no clearance: a contact, not a
-    near miss); None if none does. In the final move the fingers may meet it."""
+    """The first of ``times`` (k,) s at which a link of the arm at ``q`` (k, n) radians is
+    surely inside the object on ``path``: deeper than twice the prediction's sigma there (a
+    contact, not a near miss nor the forecast's noise); None if none is. In the final move
+    (from ``final_from``) the fingers may meet it."""
     if not len(times):
         return None
     gap = _gaps(arm, T_world_base, times, q, path, body)
     if arm.jaw_capsule_count:
         gap[times >= final_from, -arm.jaw_capsule_count:] = np.inf
-    hit = np.flatnonzero(np.any(gap < 0.0, axis=1))
+    depth = 2.0 * np.interp(times, path.times_s, path.sigma)
+    hit = np.flatnonzero(np.any(gap < -depth[:, None], axis=1))
     return float(times[hit[0]]) if len(hit) else None
 
 
