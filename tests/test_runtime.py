@@ -22,6 +22,7 @@ from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.service import STOP_SIGNALS, Service
 from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.state import PAGE, StateFile
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
 from wavegrasp.schemas import (
     ArmState,
@@ -220,3 +221,20 @@ def test_the_rerun_log_keeps_an_arm_state_on_its_joint_limits_without_warning(
         log.arm_state(state)
     log.close()
     assert (tmp_path / "run.rrd").stat().st_size > 0
+
+
+def test_a_state_file_is_overwritten_in_place_and_always_whole(tmp_path) -> None:
+    path = tmp_path / "state.json"
+    state = StateFile(path)
+    state.save({"frames": 1, "note": "x" * 100})
+    inode = path.stat().st_ino
+    state.save({"frames": 2})  # shorter: the rest of the page is blank, still one JSON object
+    assert path.stat().st_ino == inode and path.stat().st_size == PAGE
+    assert StateFile(path).load() == {"frames": 2}
+    state.save({"frames": 3, "note": "y" * PAGE})  # over a page: a new file renamed in
+    assert path.stat().st_ino != inode
+    assert StateFile(path).load() == {"frames": 3, "note": "y" * PAGE}
+    state.save({"frames": 4})
+    assert StateFile(path).load() == {"frames": 4}
+    state.clear()
+    assert not path.exists() and StateFile(path).load() is None

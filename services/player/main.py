@@ -95,6 +95,7 @@ class Player(Service):
         self._last_clock_ns: int | None = None
         self._tf_static: RecordedMessage | None = None
         self.state = StateFile(settings.resume_file)
+        self._resolved = str(self.recording.path.resolve())
         self._tf_static_sent_ns = 0
         for name in settings.ack_services:
             self.bus.subscribe(ack_key(name), self.on_ack, FrameAck)
@@ -148,7 +149,7 @@ class Player(Service):
         return log_time_ns
 
     def note_progress(self, log_time_ns: int) -> None:
-        self.state.save({"recording": str(self.recording.path.resolve()),
+        self.state.save({"recording": self._resolved,
                          "log_time_ns": log_time_ns, "frames": self.frames,
                          "messages": self.messages, "published": self.bus.published()})
 
