@@ -253,7 +253,8 @@ class GateAbort(Message):
     header: Header
     plan_id: str
     reason: str
-    value: float | None = Field(None, description="the error (m) or age (s) past its limit")
+    value: float | None = Field(None, description="the figure past its limit: an error (m), an "
+                                "input's age (s) or the time to a contact ahead (s, under it)")
     limit: float | None = None
 
 

@@ -376,8 +376,8 @@ class Gate:
         if mean is not None and mean > cfg.abort_error_m:
             return (plan_id, "tracking error", f"tracking error {mean * 1e3:.1f} mm > "
                     f"{cfg.abort_error_m * 1e3:.1f} mm", mean, cfg.abort_error_m)
-        if t_contact_ns is not None and (t_contact_ns - now_ns) / NS <= cfg.abort_contact_s:
-            ahead = (t_contact_ns - now_ns) / NS
+        ahead = math.inf if t_contact_ns is None else (t_contact_ns - now_ns) / NS
+        if ahead <= cfg.abort_contact_s:
             return (plan_id, "contact ahead", f"the arm would touch the object in {ahead:.2f} s "
                     f"(limit {cfg.abort_contact_s:.2f} s)", ahead, cfg.abort_contact_s)
         assert newest is not None

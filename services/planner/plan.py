@@ -449,7 +449,7 @@ def _approach(path: PredictedPath, now: float, t_g: float, T_grasp: np.ndarray,
         points = waypoints(p_f, n, d, alpha, cfg.waypoint_count, cfg.beta_m, final_m, move,
                            final_step_m)
         qs = approach_joints(arm, T_base_world @ T_grasp, T_base_world, points, q_f, cfg,
-                              solved)
+                             solved)
         if qs is not None:
             break
     else:
@@ -569,8 +569,8 @@ def stage_delays(slack_s: float, period_s: float, tries: int) -> np.ndarray:
 
 
 def approach_joints(arm: ArmModel, T_base_grasp: np.ndarray, T_base_world: np.ndarray,
-                     points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig,
-                     solved: dict[bytes, np.ndarray | None]) -> np.ndarray | None:
+                    points: np.ndarray, q_f: np.ndarray, cfg: PlannerConfig,
+                    solved: dict[bytes, np.ndarray | None]) -> np.ndarray | None:
     """Joint values (k, n) at the waypoints ``points`` (k, 3), world, the tool held as in
     the grasp; solved from the grasp back to P_init, each seeding the next, so neighbours
     stay on one branch. None if one is unreachable or only on another branch. ``solved``
