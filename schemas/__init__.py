@@ -53,8 +53,10 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
     )
 }
 
+CLOCK_KEY = "wavegrasp/clock"
+
 KEY_TYPES: dict[str, type[BaseModel]] = {
-    "wavegrasp/clock": Clock,
+    CLOCK_KEY: Clock,
     "wavegrasp/perception/object": ObjectObservation,
     "wavegrasp/perception/mesh": ObjectMesh,
     "wavegrasp/predictor/prediction": MotionPrediction,
@@ -101,9 +103,9 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 
 __all__ = [
-    "ArmState", "CartesianSample", "Clock", "FrameAck", "GateAbort", "GateDecision", "GraspOutcome",
-    "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES", "MESSAGE_TYPES",
-    "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
+    "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "FrameAck", "GateAbort", "GateDecision",
+    "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES",
+    "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
     "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
     "health_key", "model_for_key", "stats_key",
 ]

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import queue
 import signal
 import sys
 import time
@@ -25,6 +27,7 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.state import PAGE, StateFile
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
 from wavegrasp.schemas import (
+    ROS_KEYS,
     ArmState,
     Clock,
     FrameAck,
@@ -128,6 +131,30 @@ def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
     with rec.path.open("rb") as f:
         topics = {c.topic for _, c, _ in make_reader(f).iter_messages(log_time_order=False)}
     assert topics == {"wavegrasp/clock"}
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_the_recorder_subscribes_only_to_its_record_keys_and_gets_each_clock_tick_once(
+        isolated_bus: Bus, tmp_path: Path) -> None:
+    """What it does not subscribe to never reaches it (the experiment leaves the 100 Hz ground
+    truth out); its own subscription, not a second one, brings its clock."""
+    settings = RecorderSettings.from_env("recorder", {
+        "WAVEGRASP_RECORD_KEYS": "wavegrasp/**,trisect/points"}, out=tmp_path, rrd=False)
+    rec = Recorder(settings, bus=isolated_bus)
+    assert isolated_bus.subscriptions == ["wavegrasp/**", "trisect/points"]
+    truth = "groundtruth/object"
+    isolated_bus.publish_cdr(truth, b"\x00\x01\x00\x00", ROS_KEYS[truth])
+    isolated_bus.publish("wavegrasp/clock", Clock(header=Header(stamp_ns=123_000_000_000),
+                                                  rate=0.0))
+    keys = []
+    with contextlib.suppress(queue.Empty):
+        while True:
+            d = isolated_bus.inbox.get(timeout=1.0)
+            keys.append(d.key)
+            assert isolated_bus.dispatch(d)
+    assert keys == ["wavegrasp/clock"]
+    assert rec.clock.now_ns() == 123_000_000_000
+    rec.on_stop()
 
 
 @pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)

@@ -47,7 +47,7 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import new_header
-from wavegrasp.schemas import Clock, FrameAck, PlayerStatus, ack_key
+from wavegrasp.schemas import CLOCK_KEY, Clock, FrameAck, PlayerStatus, ack_key
 
 log = logging.getLogger("wavegrasp.player")
 POINTS_TOPIC = "/trisect/points"
@@ -67,7 +67,7 @@ class PlayerSettings(Settings):
     ack_services: list[str] = Field(default_factory=lambda: ["recorder"],
                                     description="whose FrameAcks end a frame in lockstep")
     ack_timeout_s: float = Field(30.0, gt=0)
-    clock_period_s: float = Field(0.05, ge=0, description="least recording time between "
+    clock_period_s: float = Field(0.1, ge=0, description="least recording time between "
                                   "clock ticks, besides the one before every camera frame")
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
@@ -118,15 +118,15 @@ class Player(Service):
 
     def publish_clock(self, stamp_ns: int, frame: bool = False) -> None:
         """The recording's time, before every camera frame and otherwise at most every
-        ``clock_period_s`` (every service decodes every tick; 100 Hz ground truth need not
-        make 100 Hz ticks)."""
+        ``clock_period_s`` (every service decodes every tick: a 10 Hz camera makes the
+        ticks, and 100 Hz ground truth between its frames makes none)."""
         if self._last_clock_ns is not None and (stamp_ns <= self._last_clock_ns or (
                 not frame and stamp_ns - self._last_clock_ns < self.cfg.clock_period_s * 1e9)):
             return
         self._last_clock_ns = stamp_ns
         self._clock_seq += 1
         rate = {"realtime": 1.0, "fast": 0.0, "lockstep": 0.0}[self.cfg.pace]
-        self.bus.publish("wavegrasp/clock", Clock(
+        self.bus.publish(CLOCK_KEY, Clock(
             header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate,
             published=self.bus.published()))
 

@@ -7,9 +7,11 @@ JSON Schema. log_time is on the recording's clock (the CDR attachment's log time
 latest ``wavegrasp/clock``), so the run lines up with its input. The file is flushed every
 ``flush_period_s``: a killed recorder loses at most that much. After each camera frame is
 written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's lockstep).
-Keys matching ``record_exclude`` (``WAVEGRASP_RECORD_EXCLUDE``, comma-separated key
-expressions) are not written: ``trisect/points`` when the input recording already holds the
-clouds (``wavegrasp eval`` does this; camera frames are still acknowledged).
+The recorder subscribes to ``record_keys`` (``WAVEGRASP_RECORD_KEYS``, comma-separated key
+expressions; everything by default) and does not write keys matching ``record_exclude``
+(``WAVEGRASP_RECORD_EXCLUDE``): ``wavegrasp eval`` records neither the clouds nor the ground
+truth its cached input recordings already hold; the clouds still arrive, because the recorder
+acknowledges camera frames, and the ground truth (100 Hz) is not subscribed at all.
 ``run.rrd`` is the same run for the rerun viewer (:mod:`wavegrasp.recorder.rerun_log`);
 with ``viewer_url`` the recorder also streams it live to a viewer (``wavegrasp viewer``).
 """
@@ -45,6 +47,7 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import (
+    CLOCK_KEY,
     MESSAGE_TYPES,
     ROS_KEYS,
     ArmState,
@@ -74,6 +77,9 @@ TRUTH_KEY = "groundtruth/object"
 class RecorderSettings(Settings):
     out: Path = Path("out")
     flush_period_s: float = 0.5
+    record_keys: list[str] = Field(default_factory=lambda: ["**"],
+                                   description="key expressions to subscribe to; include "
+                                   "the camera's points (frames are acknowledged on them)")
     record_exclude: list[str] = Field(default_factory=list,
                                       description="key expressions not to write")
     rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
@@ -81,7 +87,7 @@ class RecorderSettings(Settings):
                                    "rerun viewer (rerun+http://HOST:PORT/proxy)")
     arm_urdf: str | None = None
 
-    @field_validator("record_exclude")
+    @field_validator("record_keys", "record_exclude")
     @classmethod
     def check_key_expressions(cls, exprs: list[str]) -> list[str]:
         for expr in exprs:
@@ -102,6 +108,8 @@ def free_run_path(out: Path) -> Path:
 
 
 class Recorder(Service):
+    subscribes_clock = False  # its own subscription brings the ticks: see _record_json
+
     def __init__(self, settings: RecorderSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
         settings.out.mkdir(parents=True, exist_ok=True)
@@ -136,7 +144,10 @@ class Recorder(Service):
         self._to_rerun = {ObjectObservation: "observation", MotionPrediction: "prediction",
                           GraspPlan: "plan", GateDecision: "decision", ArmState: "arm_state",
                           GraspOutcome: "outcome"}
-        self.bus.subscribe("**", self.on_message)
+        for expr in settings.record_keys:
+            self.bus.subscribe(expr, self.on_message)
+        if not any(zenoh.KeyExpr(e).includes(CLOCK_KEY) for e in settings.record_keys):
+            self.bus.subscribe(CLOCK_KEY, self.on_clock, Clock)
         log.info("recording to %s%s", self.path, " and run.rrd" if settings.rrd else "")
 
     def _channel(self, topic: str, encoding: str, schema_name: str, schema_encoding: str,
@@ -236,7 +247,8 @@ class Recorder(Service):
             self.writer.add_metadata("wavegrasp.recording", msg.metadata)
             self._wrote_metadata = True
         header = getattr(msg, "header", None)
-        # A tick is its own time; the clock subscription may not have seen it yet.
+        if isinstance(msg, Clock):
+            self.clock.on_clock(msg)
         log_time = msg.header.stamp_ns if isinstance(msg, Clock) else self.clock.now_ns()
         publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
         channel = self._channel(d.key, "json", model.__name__, "jsonschema",

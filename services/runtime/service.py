@@ -22,7 +22,15 @@ from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header, new_header
-from wavegrasp.schemas import Clock, FrameAck, Header, ServiceStats, ack_key, stats_key
+from wavegrasp.schemas import (
+    CLOCK_KEY,
+    Clock,
+    FrameAck,
+    Header,
+    ServiceStats,
+    ack_key,
+    stats_key,
+)
 
 log = logging.getLogger(__name__)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -53,6 +61,10 @@ class Service:
     """
 
     tick_period_s = 0.05
+    #: Whether the runtime subscribes to ``wavegrasp/clock`` for :attr:`clock`; a service
+    #: whose own subscription covers it (the recorder's) feeds :meth:`on_clock` itself, so
+    #: each tick is delivered once.
+    subscribes_clock = True
     #: The upstream service whose frame acknowledgements this one follows (None: none).
     ack_after: str | None = None
 
@@ -68,7 +80,8 @@ class Service:
         self._started = time.monotonic()
         self._next_stats = 0.0
         self._stats_seq = 0
-        self.bus.subscribe("wavegrasp/clock", self.on_clock, Clock)
+        if self.subscribes_clock:
+            self.bus.subscribe(CLOCK_KEY, self.on_clock, Clock)
         if self.ack_after is not None:
             self.bus.subscribe(ack_key(self.ack_after), self.on_upstream_ack, FrameAck)
 
