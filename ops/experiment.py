@@ -26,6 +26,8 @@ from tqdm import tqdm
 
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
+from wavegrasp.recorder.main import OBJECT_POINTS_KEY, POINTS_KEY
+from wavegrasp.schemas import KEY_TYPES, stats_key
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.suite import SEAS
 from wavegrasp.wavetank.waves import TABLE_I
@@ -105,6 +107,14 @@ def approval_times(outcomes: list[dict]) -> list[float]:
             if "approval_to_grasp_s" in o["evidence"]]
 
 
+#: What an experiment run records: every message of the contract, the counters, the object's
+#: points and the camera's mount; not the frame acknowledgements (lockstep's bookkeeping, six a
+#: frame) nor the clouds and the 100 Hz ground truth, which the cached recording holds (144
+#: copies of the clouds would be 64 GB). The clouds are still subscribed, not written: the
+#: recorder acknowledges frames on them.
+EXPERIMENT_RECORD_KEYS = [*KEY_TYPES, stats_key("*"), OBJECT_POINTS_KEY, "tf_static", POINTS_KEY]
+
+
 def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
                   attempts: int, execution: str = "closed") -> tuple[dict, float, int]:
     """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``:
@@ -112,10 +122,7 @@ def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
            "WAVEGRASP_EXECUTION": execution,
            "WAVEGRASP_STOP_AFTER_TRIALS": "true", "WAVEGRASP_TRIAL_TIMEOUT_S": str(TRIAL_TIMEOUT_S),
-           # The clouds and the ground truth are in the cached recording already (144 copies
-           # of the clouds would be 64 GB); the recorder acknowledges frames on the clouds,
-           # and leaving the 100 Hz ground truth unsubscribed saves ten deliveries a frame.
-           "WAVEGRASP_RECORD_KEYS": "wavegrasp/**,tf_static,trisect/points",
+           "WAVEGRASP_RECORD_KEYS": ",".join(EXPERIMENT_RECORD_KEYS),
            "WAVEGRASP_RECORD_EXCLUDE": "trisect/points",
            # In lockstep every service is on the path a frame waits for: none yields, none
            # is pinned (runs go side by side; none is real-time either, as in every lockstep

@@ -45,6 +45,12 @@ class PredictedPath:
         :mod:`wavegrasp.schemas.path`): shape (3,) for a scalar ``t``, else (k, 3)."""
         return path_at(self.spline, t)
 
+    @cached_property
+    def swing_axis(self) -> np.ndarray:
+        """The main axis of the predicted motion, shape (3,), unit (its sign arbitrary)."""
+        p = self.positions - self.positions.mean(axis=0)
+        return np.linalg.eigh(p.T @ p)[1][:, -1]
+
     def velocity(self, t: float | np.ndarray) -> np.ndarray:
         """Velocity m/s at ``t`` (the spline's derivative; zero outside the samples): shape
         (3,) for a scalar ``t``, else (k, 3)."""
@@ -78,15 +84,26 @@ def grasp_times(path: PredictedPath, earliest_s: float, rule: str,
 
 
 def motion_direction(path: PredictedPath, t: float) -> np.ndarray:
-    """Unit direction the object moves in as it arrives at ``t``; when it is (nearly) at rest,
-    the main axis of its predicted swing, signed like the velocity just before ``t``."""
-    v = path.velocity(t)
-    if np.linalg.norm(v) > 0.02:
-        return v / np.linalg.norm(v)
-    p = path.positions - path.positions.mean(axis=0)
-    axis = np.linalg.eigh(p.T @ p)[1][:, -1]
-    before = path.velocity(t - 0.1)
-    return axis if axis @ before >= 0 else -axis
+    """Unit direction, shape (3,), the object moves in as it arrives at ``t`` seconds
+    (:func:`motion_directions`)."""
+    return motion_directions(path, np.array([t]))[0]
+
+
+def motion_directions(path: PredictedPath, t: np.ndarray) -> np.ndarray:
+    """Unit directions, shape (k, 3), the object moves in as it arrives at each of ``t``
+    (shape (k,), seconds); where it is (nearly) at rest, the main axis of its predicted
+    swing, signed like the velocity 0.1 s before. One call for many times: the planner asks
+    for dozens at once (:func:`~wavegrasp.planner.plan.plan_grasp`'s hint)."""
+    v = path.velocity(t).reshape(-1, 3)
+    speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+    moving = speed > 0.02
+    out = np.empty_like(v)
+    out[moving] = v[moving] / speed[moving, None]
+    if not moving.all():
+        before = path.velocity(t[~moving] - 0.1).reshape(-1, 3)
+        axis = path.swing_axis
+        out[~moving] = np.where((before @ axis >= 0)[:, None], axis, -axis)
+    return out
 
 
 #: _across: a face normal this near square to the motion (cos) is taken across it only.

@@ -25,6 +25,7 @@ from wavegrasp.planner.approach import (
     grasp_orientations,
     grasp_times,
     motion_direction,
+    motion_directions,
     offset_direction,
     offsets,
     perpendicular,
@@ -290,7 +291,7 @@ def _again(path: PredictedPath, times: list[float], hint: Hint) -> list[float]:
     The last plan's grasp time comes nearer with each prediction until the arm can no longer
     make it, and then the next period's is the one."""
     def miss(t: np.ndarray) -> np.ndarray:
-        d = np.array([motion_direction(path, x) for x in t])
+        d = motion_directions(path, t)
         return (np.linalg.norm(path.at(t) - hint.T_grasp[:3, 3], axis=1)
                 + 0.1 * np.linalg.norm(d - hint.d, axis=1))
 
