@@ -83,6 +83,8 @@ class PlayerSettings(Settings):
 
 
 class Player(Service):
+    subscribes_clock = False  # it makes the clock
+
     def __init__(self, settings: PlayerSettings, recording: Recording,
                  bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
