@@ -17,8 +17,12 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
+from collections import Counter
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -115,20 +119,58 @@ def approval_times(outcomes: list[dict]) -> list[float]:
 EXPERIMENT_RECORD_KEYS = [*KEY_TYPES, stats_key("*"), OBJECT_POINTS_KEY, "tf_static", POINTS_KEY]
 
 
+class Cores:
+    """The cores this process may use, handed to the runs side by side, the least busy first.
+
+    A lockstep run is a chain (each frame waits on each of its processes in turn) that keeps
+    about one core busy. With its processes on a core of their own they hand each frame on
+    at once, not after the other run's are switched out (``--no-pin``: anywhere): measured
+    in the README's experiment section.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._runs = Counter({core: 0 for core in sorted(os.sched_getaffinity(0))})
+
+    @contextmanager
+    def take(self) -> Iterator[int]:
+        """A core for one run while the ``with`` block lasts."""
+        with self._lock:
+            core = min(self._runs, key=lambda c: (self._runs[c], c))
+            self._runs[core] += 1
+        try:
+            yield core
+        finally:
+            with self._lock:
+                self._runs[core] -= 1
+
+
+CORES = Cores()
+
+
 def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
-                  attempts: int, execution: str = "closed") -> tuple[dict, float, int]:
-    """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``:
-    its summary.json, wall seconds and exit code."""
+                  attempts: int, execution: str = "closed", pin: bool = True
+                  ) -> tuple[dict, float, int]:
+    """One lockstep ``wavegrasp up`` of ``trials`` trials on ``recording`` into ``run_dir``,
+    its processes on one core (:class:`Cores`) if ``pin``: its summary.json, wall seconds and
+    exit code."""
+    with CORES.take() if pin else nullcontext(None) as core:
+        return _run_recording(recording, run_dir, predictor, trials, attempts, execution, core)
+
+
+def _run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
+                   attempts: int, execution: str, core: int | None) -> tuple[dict, float, int]:
+    cpus = "" if core is None else str(core)
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
            "WAVEGRASP_EXECUTION": execution,
            "WAVEGRASP_STOP_AFTER_TRIALS": "true", "WAVEGRASP_TRIAL_TIMEOUT_S": str(TRIAL_TIMEOUT_S),
            "WAVEGRASP_RECORD_KEYS": ",".join(EXPERIMENT_RECORD_KEYS),
            "WAVEGRASP_RECORD_EXCLUDE": "trisect/points",
-           # In lockstep every service is on the path a frame waits for: none yields, none
-           # is pinned (runs go side by side; none is real-time either, as in every lockstep
-           # run); and run.mcap holds what a run.rrd would show (`wavegrasp up` makes one).
-           "WAVEGRASP_BACKGROUND_NICE": "0", "WAVEGRASP_HOT_CPUS": "",
-           "WAVEGRASP_BACKGROUND_CPUS": "", "WAVEGRASP_RRD": "false"}
+           # In lockstep every service is on the path a frame waits for: none yields, all
+           # share the run's core (none is real-time either, as in every lockstep run); and
+           # run.mcap holds what a run.rrd would show (`wavegrasp up` makes one).
+           "WAVEGRASP_BACKGROUND_NICE": "0", "WAVEGRASP_HOT_CPUS": cpus,
+           "WAVEGRASP_BACKGROUND_CPUS": cpus, "WAVEGRASP_RRD": "false"}
     started = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-m", "wavegrasp", "up", str(recording), "--pace", "lockstep",
@@ -140,13 +182,13 @@ def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
 
 
 def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trials: int,
-            attempts: int, seed: int, out: Path) -> RunResult:
+            attempts: int, seed: int, out: Path, pin: bool = True) -> RunResult:
     recording = _recording((sea, wave, obj, seed, WARMUP_S + trials * PER_TRIAL_S))
     kind = "" if sea == "regular" else f"{sea}-"
     loop = "" if execution == "closed" else f"-{execution}"
     run_dir = out / "runs" / f"{predictor}{loop}-{kind}wave{wave}-{obj}"
     summary, seconds, code = run_recording(recording, run_dir, predictor, trials, attempts,
-                                           execution)
+                                           execution, pin)
     success, failures, unfinished = trial_results(summary.get("outcomes", []), trials, attempts)
     return RunResult(predictor, wave, obj, sea, execution, trials=trials,
                      success_attempt=success, failures=failures, unfinished=unfinished,
@@ -178,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
     # each process in turn), and one run more than cores (eight processes each) lost more to
     # contention than it filled: on 2 cores 16.8 min against 13.4 for the whole experiment.
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--no-pin", dest="pin", action="store_false",
+                   help="let each run's processes use any core (default: each run on a core "
+                   "of its own, the least busy)")
     a = p.parse_args(args)
     predictors = a.predictors.split(",")
     seas = a.seas.split(",")
@@ -203,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(pred, x, *c) for pred in predictors for x in executions for c in configs]
     results: list[RunResult] = []
     with ThreadPoolExecutor(a.jobs) as pool:
-        futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out)
+        futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out, a.pin)
                    for job in jobs]
         for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
             results.append(f.result())
