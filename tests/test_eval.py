@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 from pathlib import Path
 
-from wavegrasp.ops.experiment import RunResult, trial_results
+from wavegrasp.ops.experiment import Cores, RunResult, trial_results
 
 from conftest import wavegrasp_cmd
 
@@ -33,6 +34,19 @@ def test_trials_are_counted_from_the_outcomes() -> None:
     run = RunResult("blend", 2, "can_half", trials=5, success_attempt=success,
                     failures=failures, unfinished=unfinished)
     assert run.rate(1) == 0.2 and run.rate(3) == 0.4
+
+
+def test_runs_side_by_side_each_get_the_least_busy_core() -> None:
+    cores = Cores()
+    mine = sorted(os.sched_getaffinity(0))
+    with cores.take() as first:
+        assert first == mine[0]
+        with cores.take() as second:  # another core while there is one; else shared
+            assert second == (mine[1] if len(mine) > 1 else mine[0])
+        with cores.take() as third:  # the one given back is the least busy again
+            assert third == second
+    with cores.take() as again:
+        assert again == mine[0]
 
 
 def test_the_report_gives_each_sea_its_own_rows(tmp_path: Path) -> None:

@@ -157,6 +157,7 @@ class Executor:
         w = self.world
         w.drive_object(position, quat_xyzw)
         a = self.attempt
+        w.watch_tether = a is not None and w.time_s < a.t_grasp  # read below only then
         if a is None:
             self._follow_return(t_s)
             w.step_to(t_s)

@@ -12,7 +12,7 @@ says; else it starts as the sphere or cylinder perception fitted and becomes per
 (its convex hull) once one arrives. Its tether runs straight from its lower end (along its
 −z) to an anchor on the seabed, fixed where that line met the seabed when the scene was
 built; the tether is a thin line that pushes nothing, but an arm link touching it is
-recorded (:meth:`SimWorld.tether_touches`).
+recorded (:meth:`SimWorld.tether_touches`) while :attr:`SimWorld.watch_tether` is set.
 """
 
 from __future__ import annotations
@@ -99,6 +99,10 @@ class SimWorld:
         self.anchor: np.ndarray | None = None
         self._tether_length = 0.0
         self._tether_touched: set[int] = set()
+        #: Whether each step places the tether and records the links touching it: only
+        #: while someone reads them (an attempt before its grasp). The tether follows the
+        #: object step by step then; idle, its two calls a step were half the sim's steps.
+        self.watch_tether = False
         self.set_arm(arm.q_home)
         self.set_jaw(arm.jaw_max_opening_m)
 
@@ -215,7 +219,7 @@ class SimWorld:
         while self.time_s + STEP_S <= t_s + 1e-12:
             pb.stepSimulation(physicsClientId=self.client)
             self.time_s += STEP_S
-            if self.tether is not None:
+            if self.tether is not None and self.watch_tether:
                 self._place_tether()
                 self._tether_touched.update(p[3] for p in pb.getClosestPoints(
                     self.robot, self.tether, 0.0, physicsClientId=self.client))
