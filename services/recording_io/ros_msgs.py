@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.recording_io.writer import _header, check_points, check_stamp
@@ -144,6 +143,10 @@ def _unit_quaternion(rotation) -> np.ndarray:
 
 def transform_matrix(translation, rotation) -> np.ndarray:
     """4x4 pose from a geometry_msgs translation/position and quaternion."""
+    # Here, not at the top: importing scipy.spatial takes 0.17 s, and the recorder, which
+    # imports this module for its CDR checks, needs no transform unless it writes run.rrd.
+    from scipy.spatial.transform import Rotation
+
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(_unit_quaternion(rotation)).as_matrix()
     T[:3, 3] = [translation.x, translation.y, translation.z]
