@@ -214,6 +214,12 @@ def test_recorder_rejects_a_bad_exclude_expression(tmp_path: Path) -> None:
         RecorderSettings.from_env("recorder", {"WAVEGRASP_RECORD_EXCLUDE": "a//b"}, out=tmp_path)
 
 
+def test_recorder_refuses_record_keys_that_overlap(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="WAVEGRASP_RECORD_KEYS.*overlap"):
+        RecorderSettings.from_env("recorder", {
+            "WAVEGRASP_RECORD_KEYS": "wavegrasp/**,wavegrasp/clock"}, out=tmp_path)
+
+
 def test_the_service_loop_holds_the_interpreter_lock_as_briefly_as_its_settings_say(
         router: Router) -> None:
     class Probe(Service):

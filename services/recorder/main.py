@@ -10,8 +10,9 @@ written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's
 The recorder subscribes to ``record_keys`` (``WAVEGRASP_RECORD_KEYS``, comma-separated key
 expressions; everything by default) and does not write keys matching ``record_exclude``
 (``WAVEGRASP_RECORD_EXCLUDE``): ``wavegrasp eval`` records neither the clouds nor the ground
-truth its cached input recordings already hold; the clouds still arrive, because the recorder
-acknowledges camera frames, and the ground truth (100 Hz) is not subscribed at all.
+truth its cached input recordings already hold, nor the frame acknowledgements; the clouds
+still arrive, because the recorder acknowledges camera frames, and the rest are not
+subscribed at all.
 ``run.rrd`` is the same run for the rerun viewer (:mod:`wavegrasp.recorder.rerun_log`);
 with ``viewer_url`` the recorder also streams it live to a viewer (``wavegrasp viewer``).
 """
@@ -95,6 +96,19 @@ class RecorderSettings(Settings):
                 zenoh.KeyExpr(expr)
             except Exception as exc:  # zenoh raises its own error type
                 raise ValueError(f"{expr!r} is not a key expression: {exc}") from None
+        return exprs
+
+    @field_validator("record_keys")
+    @classmethod
+    def check_no_overlap(cls, exprs: list[str]) -> list[str]:
+        """Each subscription delivers its own copy: overlapping ones would write a message
+        twice."""
+        keys = [zenoh.KeyExpr(e) for e in exprs]
+        for i, a in enumerate(keys):
+            for b in keys[i + 1:]:
+                if a.intersects(b):
+                    raise ValueError(f"{str(a)!r} and {str(b)!r} overlap: what both match "
+                                     "would be recorded twice")
         return exprs
 
 
