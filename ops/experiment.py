@@ -57,6 +57,8 @@ class Trials:
     exit_code: int = 0
     #: Per attempt, recording seconds from its approval to its grasp time.
     approval_to_grasp_s: list[float] = field(default_factory=list)
+    #: Per service, the CPU seconds its process used (its last stats: start-up included).
+    cpu_s: dict[str, float] = field(default_factory=dict)
 
     def rate(self, within: int) -> float:
         """Share of the trials that succeeded within ``within`` attempts."""
@@ -103,6 +105,12 @@ def trial_results(outcomes: list[dict], trials: int, attempts: int
         failures[kind] = failures.get(kind, 0) + 1
         ended[k] = ended[k] or o["evidence"].get("no_attempt", False) or o["attempt"] >= attempts
     return success, failures, sum(not e for e in ended)
+
+
+def service_cpu(summary: dict) -> dict[str, float]:
+    """Per service, the CPU seconds in its last stats in a run's summary.json."""
+    return {name: round(float(stats.get("cpu_s", 0.0)), 2)
+            for name, stats in summary.get("services", {}).items()}
 
 
 def approval_times(outcomes: list[dict]) -> list[float]:
@@ -193,7 +201,8 @@ def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trial
     return RunResult(predictor, wave, obj, sea, execution, trials=trials,
                      success_attempt=success, failures=failures, unfinished=unfinished,
                      seconds=seconds, exit_code=code,
-                     approval_to_grasp_s=approval_times(summary.get("outcomes", [])))
+                     approval_to_grasp_s=approval_times(summary.get("outcomes", [])),
+                     cpu_s=service_cpu(summary))
 
 
 def main(argv: list[str] | None = None) -> int:

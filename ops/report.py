@@ -71,8 +71,27 @@ def markdown(results: list, settings: dict) -> str:
             "--", "--"]
         lines.append(f"| {p} | {len(times)} | {aborted} | {median} | {p90} |")
     lines += unfinished_lines(results)
+    lines += cpu_lines(results)
     lines += ["", "![success](success.png)", "", "![failures](failures.png)", ""]
     return "\n".join(lines)
+
+
+def cpu_lines(results: list) -> list[str]:
+    """The report's table of CPU seconds per service and predictor, over all runs: where
+    the experiment's time goes (the router, not a service, is not in it)."""
+    services = sorted({name for r in results for name in r.cpu_s})
+    if not services:
+        return []
+    predictors = list(dict.fromkeys(r.label for r in results))
+    lines = ["", "CPU seconds per service (all its runs, start-up included):", "",
+             "| predictor | runs | " + " | ".join(services) + " | total |",
+             "|---|---|" + "---|" * (len(services) + 1)]
+    for p in predictors:
+        mine = [r for r in results if r.label == p]
+        sums = [sum(r.cpu_s.get(name, 0.0) for r in mine) for name in services]
+        lines.append(f"| {p} | {len(mine)} | " + " | ".join(f"{x:.0f}" for x in sums)
+                     + f" | {sum(sums):.0f} |")
+    return lines
 
 
 def unfinished_lines(results: list) -> list[str]:

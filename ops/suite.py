@@ -30,6 +30,7 @@ from wavegrasp.ops.experiment import (
     WARMUP_S,
     Trials,
     run_recording,
+    service_cpu,
     trial_results,
 )
 from wavegrasp.ops.sample import cached_recording, recording_path
@@ -99,7 +100,8 @@ def run_scenario(predictor: str, scenario: Scenario, trials: int, attempts: int,
                           plans + int(counters.get("no plan", 0)), plans, rejected,
                           observed_share(summary),
                           trials=trials, success_attempt=success, failures=failures,
-                          unfinished=unfinished, seconds=seconds, exit_code=code)
+                          unfinished=unfinished, seconds=seconds, exit_code=code,
+                          cpu_s=service_cpu(summary))
 
 
 def run_predictors(predictors: list[str], scenario: Scenario, trials: int, attempts: int,

@@ -333,3 +333,5 @@ class ServiceStats(Message):
     counters: dict[str, Count] = Field(default_factory=dict,
                                        description="service-specific counts")
     uptime_s: float = Field(0.0, ge=0.0)
+    cpu_s: float = Field(0.0, ge=0.0, description="the process's CPU time so far, user and "
+                         "system, all its threads, seconds (start-up included)")

@@ -89,6 +89,10 @@ def test_a_small_experiment_end_to_end_repeats_exactly(tmp_path: Path) -> None:
     assert (out / "success.png").stat().st_size > 1000
     assert (out / "failures.png").stat().st_size > 1000
     assert "| 2 | can_half |" in (out / "report.md").read_text()
+    # Where the run's CPU went, per service, from each one's last stats.
+    assert {"perception", "predictor", "planner", "gate", "sim", "recorder"} <= set(run["cpu_s"])
+    assert all(cpu > 0 for cpu in run["cpu_s"].values()), run["cpu_s"]
+    assert "CPU seconds per service" in (out / "report.md").read_text()
     again = run_eval(tmp_path / "again")  # lockstep: the same trials, attempt for attempt
     assert again["runs"][0]["success_attempt"] == run["success_attempt"]
     assert again["runs"][0]["failures"] == run["failures"]

@@ -122,7 +122,7 @@ class Service:
             header=new_header(self.name, self._stats_seq, self.clock.now_ns()),
             service=self.name, subscriptions=list(b.subscriptions), received=dict(b.received),
             bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason), counters=dict(self.counters),
-            uptime_s=time.monotonic() - self._started))
+            uptime_s=time.monotonic() - self._started, cpu_s=time.process_time()))
 
     def check_signals(self) -> None:
         """Stop on a pending SIGINT/SIGTERM (``wavegrasp <service>`` blocks them: see
