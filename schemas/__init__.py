@@ -18,6 +18,7 @@ from wavegrasp.schemas.messages import (
     FrameAck,
     GateAbort,
     GateDecision,
+    GateTrust,
     GraspOutcome,
     GraspPlan,
     Header,
@@ -44,6 +45,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         ArmStandby,
         GateDecision,
         GateAbort,
+        GateTrust,
         GraspOutcome,
         ArmState,
         Clock,
@@ -54,6 +56,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
 }
 
 CLOCK_KEY = "wavegrasp/clock"
+TRUST_KEY = "wavegrasp/gate/trust"
 
 KEY_TYPES: dict[str, type[BaseModel]] = {
     CLOCK_KEY: Clock,
@@ -64,6 +67,7 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/planner/standby": ArmStandby,
     "wavegrasp/gate/decision": GateDecision,
     "wavegrasp/gate/abort": GateAbort,
+    TRUST_KEY: GateTrust,
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
     "wavegrasp/player/status": PlayerStatus,
@@ -104,8 +108,9 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 __all__ = [
     "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "FrameAck", "GateAbort", "GateDecision",
+    "GateTrust",
     "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
-    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
+    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "TRUST_KEY", "Vec3", "ack_key",
     "health_key", "model_for_key", "stats_key",
 ]
