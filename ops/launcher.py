@@ -25,6 +25,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.ops.viewer import viewer_url
@@ -67,11 +68,15 @@ def local_command(command: list[str]) -> list[str]:
 
 
 class Launcher:
-    def __init__(self, services: dict[str, ComposeService], env: dict[str, str]) -> None:
+    def __init__(self, services: dict[str, ComposeService], env: dict[str, str],
+                 fork: bool = True) -> None:
         self.services = services
         self.env = env
+        self.fork = fork  # services forked from a process with their libraries loaded
+        if fork:
+            forked.prepare()
         self.order = start_order(services)
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.procs: dict[str, subprocess.Popen[bytes] | forked.ForkedService] = {}
         self.started: list[str] = []
         self.bus: Bus | None = None
         self.summary = RunSummary()
@@ -95,8 +100,11 @@ class Launcher:
     def start(self, name: str) -> None:
         svc = self.services[name]
         env = {**os.environ, **self.env, **svc.environment, "PYTHONUNBUFFERED": "1"}
-        proc = subprocess.Popen(local_command(svc.command), env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+        command = local_command(svc.command)
+        args = forked.forkable(command, env) if self.fork else None
+        proc = forked.ForkedService(args, env) if args else subprocess.Popen(
+            command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            start_new_session=True)
         self.procs[name] = proc
         self._up_since[name] = time.monotonic()
         if name not in self.started:
@@ -270,6 +278,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "fed live; it stays up after the run until Ctrl-C")
     parser.add_argument("--viewer-port", type=int, default=9090,
                         help="HTTP port of the web viewer (default 9090)")
+    parser.add_argument("--no-fork", dest="fork", action="store_false",
+                        help="start each service as a command of its own (as compose does), "
+                        "not forked from a process that has loaded their libraries once")
     return parser.parse_args(argv)
 
 
@@ -327,7 +338,7 @@ def prepare(args: argparse.Namespace) -> Run:
     services = load_compose(compose_path, env,
                             frozenset({"viewer"}) if args.viewer else frozenset())
     out.mkdir(parents=True, exist_ok=True)
-    return Run(args, Launcher(services, env), env, out, recording)
+    return Run(args, Launcher(services, env, args.fork), env, out, recording)
 
 
 def execute(run: Run) -> str:

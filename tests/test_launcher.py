@@ -132,8 +132,8 @@ def test_killed_recorder_loses_at_most_a_second_and_goes_on_in_a_new_file(
     try:
         bus.subscribe(ack_key("recorder"), lambda m, d: acked.append(m.frame_seq), FrameAck)
         assert not bus.wait_for_services(["recorder", "player"], timeout_s=30)
-        recorder = next(c for c in psutil.Process(up.pid).children()
-                        if "recorder" in c.cmdline())
+        recorder = next(c for c in psutil.Process(up.pid).children(recursive=True)
+                        if "wavegrasp recorder" in " ".join(c.cmdline()))
         assert wait_until(lambda: (bus.dispatch(bus.inbox.get()) if not bus.inbox.empty()
                                    else None, len(acked) >= 35)[1], timeout=30)
         recorder.send_signal(signal.SIGKILL)

@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
+from wavegrasp.ops.forked import forkable
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
 
 from conftest import recorded, source_frames, wavegrasp_cmd
 
 
-def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120):
-    return subprocess.run(wavegrasp_cmd("up", str(recording), "--pace", pace, "--out", str(out)),
+def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120,
+           *extra: str):
+    return subprocess.run(wavegrasp_cmd("up", str(recording), "--pace", pace, "--out", str(out),
+                                        *extra),
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -51,6 +56,40 @@ def test_up_lockstep_acknowledges_each_frame(recording: Path, tmp_path: Path) ->
     payloads, _ = recorded(out / "run.mcap")
     acks = [json.loads(p)["frame_seq"] for p in payloads["wavegrasp/recorder/ack"]]
     assert acks == list(range(50))
+
+
+def test_services_forked_or_started_as_commands_repeat_the_same_lockstep_run(
+        recording: Path, tmp_path: Path) -> None:
+    """``wavegrasp up`` forks its services from a process that has loaded their libraries;
+    ``--no-fork`` starts each as a command, as compose does: the same observations and
+    predictions either way (their traces' wall times aside)."""
+    def contents(out: Path) -> dict[str, list[dict]]:
+        payloads, _ = recorded(out / "run.mcap")
+        keys = ("wavegrasp/perception/object", "wavegrasp/predictor/prediction")
+        got = {key: [json.loads(p) for p in payloads[key]] for key in keys}
+        for messages in got.values():
+            for m in messages:
+                del m["header"]["trace"]
+        return got
+
+    forked, commands = tmp_path / "forked", tmp_path / "commands"
+    check_run(recording, forked, run_up(recording, forked, "lockstep"))
+    check_run(recording, commands, run_up(recording, commands, "lockstep", 120, "--no-fork"))
+    first = contents(forked)
+    assert len(first["wavegrasp/perception/object"]) == 50
+    assert first["wavegrasp/predictor/prediction"]
+    assert first == contents(commands)
+
+
+def test_only_wavegrasp_services_with_the_servers_thread_limits_are_forked() -> None:
+    env = dict(os.environ)
+    service = [sys.executable, "-m", "wavegrasp", "perception", "--x"]
+    assert forkable(service, env) == ["perception", "--x"]
+    assert forkable([sys.executable, "-m", "wavegrasp", "router"], env) == ["router"]
+    assert forkable([sys.executable, "-m", "wavegrasp", "viewer"], env) is None
+    assert forkable(["rerun", "--serve"], env) is None
+    threads = env.get("OMP_NUM_THREADS", "1")
+    assert forkable(service, {**env, "OMP_NUM_THREADS": threads + "0"}) is None
 
 
 @pytest.mark.parametrize("kind", ["ros1", "ros2"])
