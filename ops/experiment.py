@@ -31,7 +31,7 @@ from tqdm import tqdm
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.main import OBJECT_POINTS_KEY, POINTS_KEY
-from wavegrasp.schemas import KEY_TYPES, TRUST_KEY, stats_key
+from wavegrasp.schemas import KEY_TYPES, stats_key
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.suite import SEAS
 from wavegrasp.wavetank.waves import TABLE_I
@@ -119,14 +119,12 @@ def approval_times(outcomes: list[dict]) -> list[float]:
             if "approval_to_grasp_s" in o["evidence"]]
 
 
-#: What an experiment run records: every message of the contract but the gate's record at
-#: every frame (each decision carries it where it mattered), the counters, the object's
+#: What an experiment run records: every message of the contract, the counters, the object's
 #: points and the camera's mount; not the frame acknowledgements (lockstep's bookkeeping, six a
 #: frame) nor the clouds and the 100 Hz ground truth, which the cached recording holds (144
 #: copies of the clouds would be 64 GB). The clouds are still subscribed, not written: the
 #: recorder acknowledges frames on them.
-EXPERIMENT_RECORD_KEYS = [*(k for k in KEY_TYPES if k != TRUST_KEY), stats_key("*"),
-                          OBJECT_POINTS_KEY, "tf_static", POINTS_KEY]
+EXPERIMENT_RECORD_KEYS = [*KEY_TYPES, stats_key("*"), OBJECT_POINTS_KEY, "tf_static", POINTS_KEY]
 
 
 class Cores:

@@ -18,7 +18,6 @@ from wavegrasp.schemas.messages import (
     FrameAck,
     GateAbort,
     GateDecision,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     Header,
@@ -45,7 +44,6 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         ArmStandby,
         GateDecision,
         GateAbort,
-        GateTrust,
         GraspOutcome,
         ArmState,
         Clock,
@@ -56,7 +54,6 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
 }
 
 CLOCK_KEY = "wavegrasp/clock"
-TRUST_KEY = "wavegrasp/gate/trust"
 
 KEY_TYPES: dict[str, type[BaseModel]] = {
     CLOCK_KEY: Clock,
@@ -67,7 +64,6 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/planner/standby": ArmStandby,
     "wavegrasp/gate/decision": GateDecision,
     "wavegrasp/gate/abort": GateAbort,
-    TRUST_KEY: GateTrust,
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
     "wavegrasp/player/status": PlayerStatus,
@@ -108,9 +104,8 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 __all__ = [
     "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "FrameAck", "GateAbort", "GateDecision",
-    "GateTrust",
     "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
-    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "TRUST_KEY", "Vec3", "ack_key",
+    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
     "health_key", "model_for_key", "stats_key",
 ]

@@ -243,20 +243,6 @@ class GateDecision(Message):
     reason: str = ""
 
 
-class GateTrust(Message):
-    """``wavegrasp/gate/trust``: at every observation scored or not, whether the gate would let
-    a new plan pass on the predictions' record alone (eq. 14): enough errors in the window
-    and their mean ē within ε. A plan is still judged on everything else when it comes; a
-    planner may spare itself plans the record would refuse."""
-
-    header: Header
-    trusted: bool
-    mean_error_m: float | None = Field(None, ge=0.0)
-    threshold_m: float
-    matches: Count = Field(description="errors in the window")
-    required: Count = Field(description="errors the window must hold")
-
-
 FailureKind = Literal["prediction", "collision", "timing", "abrupt_change", "unreachable", "other"]
 
 

@@ -28,7 +28,6 @@ from wavegrasp.schemas import (
     FrameAck,
     GateAbort,
     GateDecision,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     Header,
@@ -393,8 +392,6 @@ EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
                                        reason="warming up"),
     GateAbort: lambda: GateAbort(header=header(10**18), plan_id="p", reason="stale "
                                  "prediction: 0.70 s old", value=0.7, limit=0.5),
-    GateTrust: lambda: GateTrust(header=header(10**18), trusted=False, mean_error_m=0.03,
-                                 threshold_m=0.01, matches=20, required=10),
     GraspOutcome: lambda: GraspOutcome(header=header(10**18), plan_id="p", trial=0, attempt=1,
                                        success=False, failure="timing",
                                        evidence={"object_passed_s": 0.2, "arm": "late"}),

@@ -16,12 +16,10 @@ from wavegrasp.predictor.main import PredictorService, PredictorSettings
 from wavegrasp.runtime.bus import CDR
 from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
-    TRUST_KEY,
     ArmState,
     Clock,
     GateAbort,
     GateDecision,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -231,10 +229,6 @@ class PlannerScenario(Scenario):
         if key == "wavegrasp/sim/outcome":
             return message_case("valid", GraspOutcome(header=header(t), plan_id="x", trial=0,
                                                       attempt=1, success=False))
-        if key == TRUST_KEY:  # trusted: the planner plans on after the fuzz
-            return message_case("valid", GateTrust(header=header(t), trusted=True,
-                                                   mean_error_m=0.002, threshold_m=0.01,
-                                                   matches=20, required=10))
         if key == "wavegrasp/gate/abort":  # of a plan not executing: nothing to stop
             return message_case("valid", GateAbort(header=header(t), plan_id="x",
                                                    reason="stale prediction"))

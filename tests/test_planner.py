@@ -47,7 +47,6 @@ from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
     ArmStandby,
     ArmState,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -470,52 +469,6 @@ def test_no_plan_is_made_while_the_arm_returns_to_its_standby(router: Router,
         with pytest.raises(ValueError, match="no transform to the arm's mount"):
             service.plan(*delivered(prediction(10.0), 10.0))
         assert service.counters["skipped: executing"] == 1
-    finally:
-        service.bus.close()
-
-
-def test_no_new_plan_while_the_gates_record_of_an_earlier_frame_refuses_the_predictions(
-        router: Router) -> None:
-    """A plan the gate would refuse on the predictions' error is not made (with the harmonic
-    predictor in irregular seas, 1012 of 1014 plans were); the record of the prediction's own
-    frame is not heeded (a replay would plan differently at another pace), nor one too old,
-    nor a window still filling."""
-    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
-    skipped = "skipped: gate distrusts the predictions"
-
-    def record(t_s: float, trusted: bool, matches: int = 20) -> None:
-        service.on_trust(GateTrust(
-            header=new_header("gate", 0, int(round(t_s * 1e9))), trusted=trusted,
-            mean_error_m=0.005 if trusted else 0.03, threshold_m=0.01, matches=matches,
-            required=10), Delivery("t", b"", "", None, 0, 0))
-
-    def plans_at(t_s: float) -> bool:
-        """Was the warm prediction stamped ``t_s`` planned on (this service knows no mount:
-        planning on it fails for that)?"""
-        before = service.counters[skipped]
-        try:
-            service.plan(*delivered(prediction(t_s), t_s))
-        except ValueError as exc:
-            assert "no transform to the arm's mount" in str(exc)
-            return True
-        assert service.counters[skipped] == before + 1
-        return False
-
-    try:
-        assert plans_at(9.9)  # no record yet
-        record(9.9, False)
-        assert not plans_at(10.0)
-        record(10.0, True)
-        record(10.1, False)  # the prediction's own frame: not heeded yet
-        assert plans_at(10.1)
-        record(10.2, False, matches=5)  # too few errors: not refused on their error
-        assert plans_at(10.3)
-        record(10.3, False)
-        assert not plans_at(10.8)
-        assert plans_at(10.9)  # 0.6 s old: a gate gone quiet is not heeded
-        record(10.9, False)
-        service.cfg.execution = "open"  # the paper's method: a plan on every prediction
-        assert plans_at(11.0)
     finally:
         service.bus.close()
 

@@ -246,16 +246,10 @@ class Gate:
 
     def mean_error(self, now_ns: int) -> float | None:
         """ē (m): trapezoid time-average of e over :meth:`window`; None without errors."""
-        return _mean(self.window(now_ns))
-
-    def record(self, now_ns: int) -> tuple[bool, float | None, int, int]:
-        """The predictions' record at ``now_ns`` (eq. 14): whether it lets a new plan pass
-        (at least :meth:`required_matches` errors in the window and ē within ε), ē (m), the
-        errors in the window and those required. Every new plan's decision checks it."""
         errors = self.window(now_ns)
-        mean, required = _mean(errors), self.required_matches()
-        trusted = len(errors) >= required and (mean is None or mean <= self.config.epsilon_m)
-        return trusted, mean, len(errors), required
+        if not errors:
+            return None
+        return time_average([e.t_ns for e in errors], [e.error_m for e in errors])
 
     def required_matches(self) -> int:
         """Errors the window must hold before a go: ``min_matches``, or fewer from a camera
@@ -288,10 +282,12 @@ class Gate:
         if plan.update_of is not None:
             return self.decide_update(plan, now_ns, latency_s, header)
         failed: list[tuple[str, str]] = []
-        trusted, mean, matches, required = self.record(now_ns)
-        if matches < required:
-            failed.append(("warming up", f"warming up: {matches} of {required} errors"))
-        elif not trusted:
+        errors = self.window(now_ns)
+        mean = self.mean_error(now_ns)
+        required = self.required_matches()
+        if len(errors) < required:
+            failed.append(("warming up", f"warming up: {len(errors)} of {required} errors"))
+        elif mean is not None and mean > cfg.epsilon_m:
             failed.append(("error", f"error {mean * 1e3:.1f} mm > {cfg.epsilon_m * 1e3:.1f} mm"))
         failed += self._freshness(plan, now_ns)
         left_s, needed_s = (plan.t_start_ns - now_ns) / NS, latency_s + cfg.latency_margin_s
@@ -315,14 +311,14 @@ class Gate:
             self.executing[plan.plan_id] = plan.t_grasp_ns + int(cfg.execution_hold_s * NS)
             self.grasp = (plan.plan_id, _position(plan), plan.t_grasp_ns, None)
             reason = (f"go: error {mean * 1e3:.1f} mm <= {cfg.epsilon_m * 1e3:.1f} mm "
-                      f"({matches} errors)")
+                      f"({len(errors)} errors)")
         else:
             reason = "; ".join(text for _, text in failed)
         return GateDecision(
             header=header if header is not None else plan.header.model_copy(deep=True),
             plan_id=plan.plan_id, go=go, mean_error_m=mean, threshold_m=cfg.epsilon_m,
             window_s=cfg.window_s, reason=reason, failed=[name for name, _ in failed],
-            matches=matches, latency_s=latency_s)
+            matches=len(errors), latency_s=latency_s)
 
     def decide_update(self, plan: GraspPlan, now_ns: int, latency_s: float,
                       header: Header | None = None) -> GateDecision:
@@ -410,13 +406,6 @@ class Gate:
         if pred_age > limit:
             failed.append(("stale", f"stale prediction: {pred_age:.2f} s old"))
         return failed
-
-
-def _mean(errors: list[ErrorSample]) -> float | None:
-    """ē (m) over ``errors``; None without errors."""
-    if not errors:
-        return None
-    return time_average([e.t_ns for e in errors], [e.error_m for e in errors])
 
 
 def _position(plan: GraspPlan) -> np.ndarray:

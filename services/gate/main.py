@@ -5,9 +5,7 @@ predictions, the paper's eq. 13-14), ``wavegrasp/planner/plan`` (to decide) and
 ``wavegrasp/sim/outcome`` (an outcome ends the plan's execution). In closed-loop execution it
 also decides on the planner's updates of the executing plan and, at every camera frame until
 the grasp time, watches it: past its limits (:meth:`Gate.watch`) it sends
-``wavegrasp/gate/abort`` and the arm retreats. At every observation it publishes the
-predictions' record (``wavegrasp/gate/trust``: ē against ε, :meth:`Gate.record`), which the
-planner reads to plan only what the record lets pass. Each decision carries the
+``wavegrasp/gate/abort`` and the arm retreats. Each decision carries the
 plan's header plus the gate's hop, so its trace shows the whole chain from the camera frame.
 Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig`.
 """
@@ -25,10 +23,8 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
-    TRUST_KEY,
     GateAbort,
     GateDecision,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -70,11 +66,6 @@ class GateService(Service):
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.gate.on_observation(msg) is not None:
             self.counters["errors scored"] += 1
-        trusted, mean, matches, required = self.gate.record(msg.header.stamp_ns)
-        self.bus.publish(TRUST_KEY, GateTrust(
-            header=new_header(self.name, msg.header.seq, msg.header.stamp_ns), trusted=trusted,
-            mean_error_m=mean, threshold_m=self.gate.config.epsilon_m, matches=matches,
-            required=required))
 
     def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
         self.gate.on_prediction(msg)

@@ -7,9 +7,8 @@ publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from wh
 is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The last
 plan's grasp is tried first on the next prediction (:class:`~wavegrasp.planner.plan.Hint`),
 until a grasp fails. While the predictor warms up, its forecasts are planned on only to
-move the arm to its standby and find the grasp to try first. While the gate's record
-(``wavegrasp/gate/trust``) refuses the predictions, closed-loop execution makes no new plan.
-The arm model is ours unless ``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
+move the arm to its standby and find the grasp to try first. The arm model is ours unless
+``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
 """
 
 from __future__ import annotations
@@ -39,12 +38,10 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
-    TRUST_KEY,
     ArmStandby,
     ArmState,
     GateAbort,
     GateDecision,
-    GateTrust,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -81,12 +78,6 @@ class PlannerSettings(Settings):
                                    "again after this much recording time, if the object's sway "
                                    "or size has changed since by more than standby_moved_m")
     standby_moved_m: float = Field(0.02, ge=0.0, description="see standby_every_s")
-    gate_record_age_s: float = Field(0.5, ge=0.0, description="closed loop: a new plan is "
-                                     "skipped while the gate's latest record of the "
-                                     "predictions from an earlier frame "
-                                     "(wavegrasp/gate/trust) refuses them, if it is at most "
-                                     "this old (recording s); 0: plan always (as open loop, "
-                                     "the paper's method, does)")
 
 
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
@@ -173,9 +164,6 @@ class PlannerService(Service):
         self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
         self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
-        self.bus.subscribe(TRUST_KEY, self.on_trust, GateTrust)
-        #: The gate's latest records (stamp ns, refused on the error: enough errors, ē > ε).
-        self._records: deque[tuple[int, bool]] = deque(maxlen=8)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
                            MotionPrediction)
@@ -277,24 +265,6 @@ class PlannerService(Service):
                 plan_id, plan, update_of = self._sent
                 self._executing = (update_of or plan_id, plan)
 
-    def on_trust(self, msg: GateTrust, _d: Delivery) -> None:
-        self._records.append((msg.header.stamp_ns, not msg.trusted
-                              and msg.matches >= msg.required))
-
-    def distrusted(self, stamp_ns: int) -> bool:
-        """Does the gate's record from the latest frame before ``stamp_ns`` refuse the
-        predictions on their error (ē > ε over a full window)? Then a new plan would be
-        refused whatever it is: with the harmonic predictor in irregular seas 1012 of 1014
-        plans were (a JONSWAP run's whole planning, 18 of its 47 CPU seconds). Only records
-        of earlier frames count, so a replay decides the same at every pace; none within
-        ``gate_record_age_s`` (a gate gone quiet): not distrusted. Open-loop execution plans
-        on every prediction still (the paper's method, kept for the comparison)."""
-        before = [(t, refused) for t, refused in self._records if t < stamp_ns]
-        if not before or self.cfg.gate_record_age_s <= 0:
-            return False
-        t, refused = before[-1]
-        return refused and stamp_ns - t <= self.cfg.gate_record_age_s * 1e9
-
     def on_abort(self, msg: GateAbort, _d: Delivery) -> None:
         if self._executing is not None and self._executing[0] == msg.plan_id:
             self._executing, self._hint = None, None
@@ -375,10 +345,6 @@ class PlannerService(Service):
             return
         if msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
-            self._failing_since_ns = None
-            return
-        if msg.warm and self.cfg.execution == "closed" and self.distrusted(msg.header.stamp_ns):
-            self.counters["skipped: gate distrusts the predictions"] += 1
             self._failing_since_ns = None
             return
         if msg.header.stamp_ns < self._standby_end_ns:
