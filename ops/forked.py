@@ -24,8 +24,9 @@ from setproctitle import setproctitle
 
 from wavegrasp.cli import SERVICES, THREAD_LIMITS
 
-#: What the fork server imports once: every service's main module.
+#: What the fork server imports once: every service's main module, then what freezes them.
 PRELOAD = [f"wavegrasp.{name}.main" for name in (*sorted(SERVICES), "router")]
+PRELOAD.append("wavegrasp.ops.preloaded")
 
 
 def forkable(command: list[str], env: dict[str, str]) -> list[str] | None:
