@@ -8,13 +8,16 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
 import psutil
 import pytest
 
+from wavegrasp.ops.compose import ComposeService
 from wavegrasp.ops.faults import BAD_INPUTS
+from wavegrasp.ops.launcher import Launcher
 from wavegrasp.runtime.bus import CDR, JSON, Bus
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, ServiceStats, ack_key, stats_key
@@ -165,3 +168,37 @@ def test_killed_recorder_loses_at_most_a_second_and_goes_on_in_a_new_file(
     down_frames = math.ceil((restart["back_s"] - restart["died_s"]) * 10)
     missing = 120 - frames - len(after)
     assert missing <= 10 + down_frames + 2, f"{missing} frames missing, {down_frames} while down"
+
+
+def test_services_stop_together_then_the_late_ones_then_the_router_then_the_last(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Each process says when SIGTERM reached it; the recorder's label (wavegrasp.stop-late)
+    keeps it up until the services have stopped, so it records their last counters."""
+    program = ("import signal, sys, time\n"
+               "def stop(*_):\n"
+               "    print('stopped', time.monotonic(), flush=True)\n"
+               "    time.sleep(0.6)\n"
+               "    sys.exit(0)\n"
+               "signal.signal(signal.SIGTERM, stop)\n"
+               "print('up', flush=True)\n"
+               "while True:\n"
+               "    time.sleep(1)\n")
+    labels = {"recorder": {"wavegrasp.stop-late": "true"},
+              "viewer": {"wavegrasp.stop-last": "true"}}
+    services = {name: ComposeService(name, [sys.executable, "-c", program],
+                                     labels=labels.get(name, {}))
+                for name in ("router", "recorder", "perception", "sim", "viewer")}
+    launcher = Launcher(services, {}, fork=False)
+    for name in services:
+        launcher.start(name)
+    time.sleep(1.5)  # every one has installed its handler
+    launcher.stop_all()
+    out = capsys.readouterr().out
+    stopped = {line.split("|")[0].strip(): float(line.split()[-1])
+               for line in out.splitlines() if "| stopped" in line}
+    assert set(stopped) == set(services), out
+    assert stopped["recorder"] > max(stopped["perception"], stopped["sim"]) + 0.5
+    assert stopped["router"] > stopped["recorder"] + 0.5
+    assert stopped["viewer"] > stopped["router"] + 0.5
+    # the services got it together, not one after the other's 0.6 s
+    assert abs(stopped["perception"] - stopped["sim"]) < 0.5
