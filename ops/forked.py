@@ -22,6 +22,7 @@ from typing import IO
 
 from setproctitle import setproctitle
 
+from wavegrasp import cli
 from wavegrasp.cli import SERVICES, THREAD_LIMITS
 
 #: What the fork server imports once: every service's main module, then what freezes them.
@@ -43,7 +44,7 @@ def forkable(command: list[str], env: dict[str, str]) -> list[str] | None:
 
 def prepare() -> None:
     """Set the thread limits (as ``wavegrasp NAME`` does) in this process's environment, which
-    the fork server inherits when it starts: call before the first :func:`start`."""
+    the fork server inherits when it starts: call before the first :class:`ForkedService`."""
     for var in THREAD_LIMITS:
         os.environ.setdefault(var, "1")
 
@@ -96,9 +97,7 @@ def _serve(args: list[str], env: dict[str, str], cwd: str, out: Connection) -> N
     os.environ.clear()
     os.environ.update(env)
     os.chdir(cwd)
-    from wavegrasp.cli import main
-
-    code = main(args)
+    code = cli.main(args)
     sys.stdout.flush()
     sys.stderr.flush()
     sys.exit(code)
