@@ -57,7 +57,8 @@ class Trials:
     exit_code: int = 0
     #: Per attempt, recording seconds from its approval to its grasp time.
     approval_to_grasp_s: list[float] = field(default_factory=list)
-    #: Per service, the CPU seconds its process used (its last stats: start-up included).
+    #: Per service, the CPU seconds its process used (its last stats; a forked
+    #: service's from its fork, not the fork server's loading of the libraries).
     cpu_s: dict[str, float] = field(default_factory=dict)
 
     def rate(self, within: int) -> float:

@@ -83,7 +83,7 @@ def cpu_lines(results: list) -> list[str]:
     if not services:
         return []
     predictors = list(dict.fromkeys(r.label for r in results))
-    lines = ["", "CPU seconds per service (all its runs, start-up included):", "",
+    lines = ["", "CPU seconds per service (all its runs; forked services from their fork):", "",
              "| predictor | runs | " + " | ".join(services) + " | total |",
              "|---|---|" + "---|" * (len(services) + 1)]
     for p in predictors:

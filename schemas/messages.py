@@ -334,4 +334,4 @@ class ServiceStats(Message):
                                        description="service-specific counts")
     uptime_s: float = Field(0.0, ge=0.0)
     cpu_s: float = Field(0.0, ge=0.0, description="the process's CPU time so far, user and "
-                         "system, all its threads, seconds (start-up included)")
+                         "system, all its threads, seconds (from its start, or its fork)")
