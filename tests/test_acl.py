@@ -153,6 +153,14 @@ def test_a_bad_config_file_is_named(tmp_path: Path) -> None:
     assert conf.get_json("mode") == '"client"' and conf.get_json("listen/endpoints") == "[]"
 
 
+def test_a_router_does_not_wait_for_scouting_unless_its_file_says_so(tmp_path: Path) -> None:
+    router = Settings(service="router", zenoh_mode="router", zenoh_listen=["tcp/127.0.0.1:0"])
+    assert zenoh_config(router).get_json("scouting/delay") == "0"
+    (tmp_path / "router.json5").write_text("{scouting: {delay: 300}}")
+    router.zenoh_config = str(tmp_path / "router.json5")
+    assert zenoh_config(router).get_json("scouting/delay") == "300"
+
+
 def test_the_tls_example_keeps_the_rules_of_the_acl() -> None:
     """ops/zenoh/router-tls.json5.example parses and differs from the ACL only in subjects
     (its certificate paths are placeholders, so it is not opened)."""

@@ -37,6 +37,11 @@ CDR = "application/cdr"
 DATA_QUEUE = "transport/link/tx/queue/size/data"
 ZENOH_DATA_QUEUE = 2
 DATA_QUEUE_BATCHES = 16
+#: A router or peer waits this long in ``zenoh.open`` for scouting to find others (zenoh's
+#: default, 500 ms, when the key is unset): with multicast scouting off there is nothing to
+#: find, and every ``wavegrasp up`` waited half a second for its router (0.5 s -> 2 ms,
+#: ``zenoh.open`` of a router on loopback). A config file that sets it keeps its own.
+SCOUTING_DELAY = "scouting/delay"
 
 
 @dataclass(frozen=True)
@@ -70,7 +75,8 @@ def config_file(settings: Settings) -> str | None:
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
     """Zenoh config: the file from ``ZENOH_CONFIG`` if any (credentials, access control, TLS),
-    then our mode and explicit endpoints, multicast scouting and shared memory off on top.
+    then our mode and explicit endpoints, multicast scouting and shared memory off on top, and
+    no wait for scouting in ``open`` unless the file asks for one.
 
     Raises
     ------
@@ -91,6 +97,8 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     conf.insert_json5("transport/shared_memory/enabled", "false")
     if json.loads(conf.get_json(DATA_QUEUE)) == ZENOH_DATA_QUEUE:  # unless the file set it
         conf.insert_json5(DATA_QUEUE, json.dumps(DATA_QUEUE_BATCHES))
+    if json.loads(conf.get_json(SCOUTING_DELAY)) is None:
+        conf.insert_json5(SCOUTING_DELAY, "0")
     return conf
 
 
