@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
+import signal
 import sys
 import threading
 import time
@@ -28,6 +28,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from wavegrasp.ops.launcher import up
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.main import OBJECT_POINTS_KEY, POINTS_KEY
@@ -169,6 +170,8 @@ def run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
 
 def _run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
                    attempts: int, execution: str, core: int | None) -> tuple[dict, float, int]:
+    if STOP.is_set():
+        raise Interrupted
     cpus = "" if core is None else str(core)
     env = {**os.environ, "WAVEGRASP_TRIALS": str(trials), "WAVEGRASP_ATTEMPTS": str(attempts),
            "WAVEGRASP_EXECUTION": execution,
@@ -181,13 +184,37 @@ def _run_recording(recording: Path, run_dir: Path, predictor: str, trials: int,
            "WAVEGRASP_BACKGROUND_NICE": "0", "WAVEGRASP_HOT_CPUS": cpus,
            "WAVEGRASP_BACKGROUND_CPUS": cpus, "WAVEGRASP_RRD": "false"}
     started = time.monotonic()
-    proc = subprocess.run(
-        [sys.executable, "-m", "wavegrasp", "up", str(recording), "--pace", "lockstep",
-         "--predictor", predictor, "--out", str(run_dir)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    (run_dir / "up.log").write_text(proc.stdout)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    # `wavegrasp up` in this process: every run's services fork from one fork server, which
+    # loaded their libraries once (as a command of its own, each run loaded them again).
+    with (run_dir / "up.log").open("w") as log:
+        code = up([str(recording), "--pace", "lockstep", "--predictor", predictor,
+                   "--out", str(run_dir)], environ=env, log=log, interrupted=STOP)
+    if code == 130:
+        raise Interrupted
     summary = json.loads((run_dir / "summary.json").read_text())
-    return summary, round(time.monotonic() - started, 1), proc.returncode
+    return summary, round(time.monotonic() - started, 1), code
+
+
+class Interrupted(Exception):
+    """The experiment was asked to stop (Ctrl-C or SIGTERM): its runs stop their services."""
+
+
+#: Set on Ctrl-C or SIGTERM (:func:`stoppable`): the runs under way stop, no other starts.
+STOP = threading.Event()
+
+
+@contextmanager
+def stoppable() -> Iterator[None]:
+    """While the ``with`` block lasts, Ctrl-C and SIGTERM set :data:`STOP`."""
+    signals = (signal.SIGINT, signal.SIGTERM)
+    before = [signal.signal(sig, lambda *_: STOP.set()) for sig in signals]
+    try:
+        yield
+    finally:
+        for sig, handler in zip(signals, before, strict=True):
+            signal.signal(sig, handler)
+        STOP.clear()
 
 
 def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trials: int,
@@ -257,11 +284,16 @@ def main(argv: list[str] | None = None) -> int:
                   total=len(configs), desc="recordings", unit="rec"))
     jobs = [(pred, x, *c) for pred in predictors for x in executions for c in configs]
     results: list[RunResult] = []
-    with ThreadPoolExecutor(a.jobs) as pool:
+    with stoppable(), ThreadPoolExecutor(a.jobs) as pool:
         futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out, a.pin)
                    for job in jobs]
-        for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
-            results.append(f.result())
+        try:
+            for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
+                results.append(f.result())
+        except Interrupted:
+            print(f"wavegrasp eval: interrupted after {len(results)} of {len(jobs)} runs",
+                  file=sys.stderr)
+            return 130
     order = {job: i for i, job in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.execution, *r.config)])
     from wavegrasp.ops.report import write_report

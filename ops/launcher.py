@@ -22,8 +22,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
@@ -69,10 +71,12 @@ def local_command(command: list[str]) -> list[str]:
 
 class Launcher:
     def __init__(self, services: dict[str, ComposeService], env: dict[str, str],
-                 fork: bool = True) -> None:
+                 fork: bool = True, log: TextIO | None = None,
+                 interrupted: threading.Event | None = None) -> None:
         self.services = services
         self.env = env
         self.fork = fork  # services forked from a process with their libraries loaded
+        self.stream = log or sys.stdout  # every service's lines and the launcher's own
         if fork:
             forked.prepare()
         self.order = start_order(services)
@@ -80,7 +84,7 @@ class Launcher:
         self.started: list[str] = []
         self.bus: Bus | None = None
         self.summary = RunSummary()
-        self.interrupted = threading.Event()
+        self.interrupted = interrupted or threading.Event()  # set: the run stops
         self.killed: list[str] = []  # services that ignored SIGTERM and had to be killed
         self.restarts: dict[str, list[Restart]] = {}
         self._pumps: list[threading.Thread] = []
@@ -89,13 +93,13 @@ class Launcher:
         self._delay: dict[str, float] = {}
         self._due: dict[str, float] = {}  # restarts waiting for their delay
 
-    def log(self, text: str) -> None:
-        print(f"{'up':>10} | {text}", flush=True)
+    def log(self, text: str, name: str = "up") -> None:
+        self.stream.write(f"{name:>10} | {text}\n")
+        self.stream.flush()
 
     def _pump(self, name: str, stream) -> None:
         for raw in iter(stream.readline, b""):
-            sys.stdout.write(f"{name:>10} | {raw.decode(errors='replace').rstrip()}\n")
-            sys.stdout.flush()
+            self.log(raw.decode(errors="replace").rstrip(), name)
 
     def start(self, name: str) -> None:
         svc = self.services[name]
@@ -315,8 +319,12 @@ class Run:
     crashed: list[str] = field(default_factory=list)
 
 
-def prepare(args: argparse.Namespace) -> Run:
-    """Check the arguments and read the compose file; raises ValueError saying what is wrong."""
+def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
+            log: TextIO | None = None, interrupted: threading.Event | None = None) -> Run:
+    """Check the arguments and read the compose file; raises ValueError saying what is wrong.
+    ``environ``: where the WAVEGRASP_ and ZENOH_ settings come from (default this process's
+    environment); ``log`` and ``interrupted``: the :class:`Launcher`'s."""
+    environ = os.environ if environ is None else environ
     root = project_root()
     compose_path = args.compose or (Path.cwd() / "docker-compose.yml")
     if not compose_path.exists():
@@ -334,7 +342,7 @@ def prepare(args: argparse.Namespace) -> Run:
     env = {
         "WAVEGRASP_ROUTER_HOST": "127.0.0.1", "WAVEGRASP_ROUTER_BIND": "127.0.0.1",
         "WAVEGRASP_ROUTER_PORT": str(free_port()),
-        **{k: v for k, v in os.environ.items() if k.startswith(("WAVEGRASP_", "ZENOH_"))},
+        **{k: v for k, v in environ.items() if k.startswith(("WAVEGRASP_", "ZENOH_"))},
         "WAVEGRASP_RECORDING": str(recording.resolve()), "WAVEGRASP_OUT": str(out),
         "WAVEGRASP_PACE": args.pace,
         "WAVEGRASP_PLAYER_RESUME_FILE": str(out / "player-position.json"),
@@ -356,7 +364,7 @@ def prepare(args: argparse.Namespace) -> Run:
     services = load_compose(compose_path, env,
                             frozenset({"viewer"}) if args.viewer else frozenset())
     out.mkdir(parents=True, exist_ok=True)
-    return Run(args, Launcher(services, env, args.fork), env, out, recording)
+    return Run(args, Launcher(services, env, args.fork, log, interrupted), env, out, recording)
 
 
 def execute(run: Run) -> str:
@@ -414,15 +422,25 @@ def exit_code(run: Run, why: str) -> int:
     return 1 if run.crashed or why == "crashed" else 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def up(argv: list[str], environ: Mapping[str, str] | None = None, log: TextIO | None = None,
+       interrupted: threading.Event | None = None) -> int:
+    """``wavegrasp up ARGV`` in this process, its settings from ``environ``, its lines to
+    ``log``, stopped when ``interrupted`` is set; returns its exit code. Its services are
+    forked from this process's fork server, which loads their libraries once for every run
+    this process makes (``wavegrasp eval``: 1.1 CPU s a run)."""
     args = parse_args(argv)
     try:
-        run = prepare(args)
+        run = prepare(args, environ, log, interrupted)
     except ValueError as exc:
-        print(f"wavegrasp up: {exc}", file=sys.stderr)
+        print(f"wavegrasp up: {exc}", file=log or sys.stderr, flush=True)
         return 2
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: run.launcher.interrupted.set())
     why = execute(run)
     summarize(run, why)
     return exit_code(run, why)
+
+
+def main(argv: list[str] | None = None) -> int:
+    interrupted = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: interrupted.set())
+    return up(sys.argv[1:] if argv is None else argv, interrupted=interrupted)

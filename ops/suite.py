@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
@@ -28,9 +29,11 @@ from tqdm import tqdm
 
 from wavegrasp.ops.experiment import (
     WARMUP_S,
+    Interrupted,
     Trials,
     run_recording,
     service_cpu,
+    stoppable,
     trial_results,
 )
 from wavegrasp.ops.sample import cached_recording, recording_path
@@ -176,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     out_of_reach = {s.name: why for s in drawn if (why := grasp_verdict(s))}
     runnable = [s for s in drawn if s.name not in out_of_reach]
     results: list[ScenarioResult] = []
-    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as generator, \
+    with stoppable(), ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as generator, \
             ThreadPoolExecutor(a.jobs) as pool:  # generating is CPU-bound, runs are processes
         if a.discard_recordings:
             futures = [pool.submit(run_discarding, generator, predictors, s, a.trials,
@@ -186,8 +189,12 @@ def main(argv: list[str] | None = None) -> int:
                       desc="recordings", unit="rec"))
             futures = [pool.submit(run_predictors, [pred], s, a.trials, a.attempts, a.out)
                        for pred in predictors for s in runnable]
-        for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
-            results.extend(f.result())
+        try:
+            for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
+                results.extend(f.result())
+        except Interrupted:
+            print(f"wavegrasp eval: interrupted after {len(results)} runs", file=sys.stderr)
+            return 130
     jobs = [(pred, s) for pred in predictors for s in runnable]
     order = {(pred, s.name): i for i, (pred, s) in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.scenario)])

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 from pathlib import Path
 
+import psutil
+
 from wavegrasp.ops.experiment import Cores, RunResult, trial_results
 
-from conftest import wavegrasp_cmd
+from conftest import spawn, wait_until, wavegrasp_cmd
 
 
 def outcome(trial: int, attempt: int, success: bool, failure: str | None = None,
@@ -113,3 +116,39 @@ def test_open_loop_repeats_the_outcomes_from_before_closed_loop_execution(
     got = [{k: o[k] for k in fields} for o in summary["outcomes"]]
     assert got == json.loads(BEFORE.read_text())
     assert not any(o["aborted"] for o in summary["outcomes"])
+
+
+def test_ctrl_c_stops_the_runs_under_way_and_leaves_no_service_behind(tmp_path: Path) -> None:
+    """The runs are ``wavegrasp up`` in the experiment's own process: Ctrl-C stops their
+    services (forked from its fork server, each in a session of its own) and starts no
+    other run."""
+    evaluation = spawn(wavegrasp_cmd(
+        "eval", "--out", str(tmp_path / "eval"), "--trials", "2", "--waves", "2",
+        "--objects", "can_half,buoy", "--predictors", "blend", "--jobs", "1"), {},
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    root = psutil.Process(evaluation.pid)
+
+    def services() -> dict[str, psutil.Process]:
+        """The experiment's services by title (forked: ``wavegrasp NAME``)."""
+        found = {}
+        for proc in root.children(recursive=True):
+            try:
+                title = " ".join(proc.cmdline())
+            except psutil.Error:
+                continue
+            if title.startswith("wavegrasp "):
+                found[title] = proc
+        return found
+
+    assert wait_until(lambda: any("player" in title for title in services()), timeout=120), (
+        "no run started")
+    running = list(services().values())
+    os.kill(evaluation.pid, signal.SIGINT)
+    output = evaluation.communicate(timeout=60)[0].decode()
+    assert evaluation.returncode == 130, output[-3000:]
+    assert "interrupted after 0 of 2 runs" in output
+    assert wait_until(lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+                                      for p in running), timeout=10)
+    assert json.loads((tmp_path / "eval" / "runs" / "blend-wave2-can_half" / "summary.json")
+                      .read_text())["ended"] == "interrupted"
+    assert not (tmp_path / "eval" / "runs" / "blend-wave2-buoy").exists()

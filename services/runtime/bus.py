@@ -116,7 +116,7 @@ def open_session(settings: Settings) -> zenoh.Session:
                 using = f" with {path}" if path else ""
                 raise ConnectionError(f"{settings.service}: cannot open zenoh session on "
                                       f"{', '.join(where)}{using}: {exc}") from None
-            time.sleep(0.2)
+            time.sleep(0.05)  # a router started a moment ago listens within milliseconds
 
 
 class Bus:
