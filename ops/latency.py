@@ -29,9 +29,10 @@ from wavegrasp.schemas import Hop
 
 CHAIN_KEY = "wavegrasp/gate/decision"
 OBSERVATION_KEY = "wavegrasp/perception/object"
+PREDICTION_KEY = "wavegrasp/predictor/prediction"
 PLAN_KEY = "wavegrasp/planner/plan"
 POINTS_TOPIC = "/trisect/points"
-TOPICS = (POINTS_TOPIC, CHAIN_KEY, OBSERVATION_KEY, PLAN_KEY)
+TOPICS = (POINTS_TOPIC, CHAIN_KEY, OBSERVATION_KEY, PREDICTION_KEY, PLAN_KEY)
 NS_PER_MS = 1e6
 
 
@@ -42,6 +43,10 @@ class Latency:
     path: Path | str  # the run.mcap, or the runs merged
     hops: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     end_to_end: list[float] = field(default_factory=list)
+    #: Camera frame to perception's observation and to the predictor's prediction, ms, for
+    #: every frame that got one (not only the few that end in a gate decision).
+    to_observation: list[float] = field(default_factory=list)
+    to_prediction: list[float] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)  # recording s, per decision
     frames_published: int = 0
     frames_observed: int = 0
@@ -53,6 +58,8 @@ class Latency:
 
     def table(self) -> list[dict[str, float | str | int]]:
         rows = [_row(name, values) for name, values in self.hops.items()]
+        rows.append(_row("camera frame -> observation", self.to_observation))
+        rows.append(_row("camera frame -> prediction", self.to_prediction))
         rows.append(_row("camera frame -> gate decision", self.end_to_end))
         return rows
 
@@ -95,6 +102,9 @@ def read_latency(path: Path) -> Latency:
                 msg = json.loads(message.data)
                 if topic == OBSERVATION_KEY:
                     observed.add(msg["header"]["seq"])
+                    lat.to_observation.append(_since_capture_ms(msg))
+                elif topic == PREDICTION_KEY:
+                    lat.to_prediction.append(_since_capture_ms(msg))
                 elif topic == PLAN_KEY:
                     plans[msg["plan_id"]] = msg
                 else:
@@ -133,7 +143,8 @@ def merge(runs: list[Latency]) -> Latency:
     for r in runs:
         for name, values in r.hops.items():
             out.hops[name].extend(values)
-        for name in ("end_to_end", "decision_times_s", "approvals_ms", "approval_leads_ms"):
+        for name in ("end_to_end", "to_observation", "to_prediction", "decision_times_s",
+                     "approvals_ms", "approval_leads_ms"):
             getattr(out, name).extend(getattr(r, name))
         out.frames_published += r.frames_published
         out.frames_observed += r.frames_observed
@@ -142,6 +153,14 @@ def merge(runs: list[Latency]) -> Latency:
     intervals = [r.frame_interval_ms for r in runs if np.isfinite(r.frame_interval_ms)]
     out.frame_interval_ms = float(np.median(intervals)) if intervals else float("nan")
     return out
+
+
+def _since_capture_ms(msg: dict) -> float:
+    """Milliseconds from the camera frame's publish (the trace's source) to ``msg``'s send."""
+    trace = msg["header"]["trace"]
+    if not trace or trace[0]["service"] != "source":
+        raise ValueError(f"seq {msg['header']['seq']}: trace does not start at the source")
+    return (trace[-1]["sent_ns"] - trace[0]["sent_ns"]) / NS_PER_MS
 
 
 def _add_decision(lat: Latency, msg: dict, plan: dict | None) -> None:

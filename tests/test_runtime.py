@@ -134,6 +134,35 @@ def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
 
 
 @pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_the_recorder_writes_one_cloud_in_cloud_every_and_acknowledges_them_all(
+        isolated_bus: Bus, recording: Path, tmp_path: Path) -> None:
+    settings = RecorderSettings.from_env("recorder", {
+        "WAVEGRASP_CLOUD_EVERY": "2", "WAVEGRASP_MCAP_COMPRESSION": "lz4"}, out=tmp_path,
+        rrd=False)
+    rec = Recorder(settings, bus=isolated_bus)
+    frames, deliveries = recorder_deliveries(isolated_bus, recording)
+    for d in deliveries:
+        isolated_bus.dispatch(d)
+    # The junk frame falls on a cloud left out: like an excluded key's, it is not read.
+    assert rec.frames == 3 and not isolated_bus.bad
+    acks = []
+    while len(acks) < 3:
+        d = isolated_bus.inbox.get(timeout=5.0)
+        if d.key == "wavegrasp/recorder/ack":
+            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
+    assert acks == [0, 1, 2]
+    rec.on_stop()
+    with rec.path.open("rb") as f:
+        reader = make_reader(f)
+        points = [msg.data for _, c, msg in reader.iter_messages(log_time_order=False)
+                  if c.topic == "/trisect/points"]
+        f.seek(0)
+        compressions = {c.compression for c in reader.get_summary().chunk_indexes}
+    assert points == [frames[0].cdr, frames[2].cdr]  # the first, then every second
+    assert compressions == {"lz4"}
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
 def test_the_recorder_subscribes_only_to_its_record_keys_and_gets_each_clock_tick_once(
         isolated_bus: Bus, tmp_path: Path) -> None:
     """What it does not subscribe to never reaches it (the experiment leaves the 100 Hz ground

@@ -28,7 +28,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import zenoh
 from mcap.writer import CompressionType, Writer
@@ -83,6 +83,11 @@ class RecorderSettings(Settings):
                                    "the camera's points (frames are acknowledged on them)")
     record_exclude: list[str] = Field(default_factory=list,
                                       description="key expressions not to write")
+    cloud_every: int = Field(1, ge=1, description="write one camera cloud in this many to "
+                             "run.mcap and run.rrd (as rosbag2 users throttle a camera); "
+                             "every frame is still acknowledged")
+    mcap_compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="run.mcap's "
+                                                             "chunk compression")
     rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
     viewer_url: str | None = Field(None, description="also stream the run live to this "
                                    "rerun viewer (rerun+http://HOST:PORT/proxy)")
@@ -130,7 +135,10 @@ class Recorder(Service):
         self.path = free_run_path(settings.out)
         self.flush_period_s = settings.flush_period_s
         self._file = self.path.open("wb")
-        self.writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self.writer = Writer(self._file,
+                             compression=CompressionType[settings.mcap_compression.upper()])
+        self.cloud_every = settings.cloud_every
+        self._thinned = False  # the last camera cloud was left out (cloud_every)
         self.writer.start(profile="ros2", library="wavegrasp recorder")
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[str, int] = {}
@@ -184,7 +192,8 @@ class Recorder(Service):
             self._record_cdr(d)
         else:
             msg = self._record_json(d)
-        if self.rerun is not None and not self.skips(d.key):
+        if self.rerun is not None and not self.skips(d.key) and not (
+                d.key == POINTS_KEY and self._thinned):
             try:
                 self.log_to_rerun(d, msg)
             except Exception as exc:  # the MCAP has it; the view goes without it
@@ -217,15 +226,18 @@ class Recorder(Service):
         msgtype = d.schema or ROS_KEYS.get(d.key)
         if msgtype is None:
             raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
+        # One camera cloud in cloud_every is written (the first always); all are acknowledged.
+        self._thinned = d.key == POINTS_KEY and self.frames % self.cloud_every != 0
+        write = not self.skips(d.key) and not self._thinned
         try:
             att = CdrAttachment.decode(d.attachment)
-            if not self.skips(d.key):
+            if write:
                 self._typestore.deserialize_cdr(d.payload, msgtype)
                 msgdef = ros2_msgdef(msgtype)
         except Exception as exc:  # rosbags raises many types on garbage
             raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
-        if not self.skips(d.key):
+        if write:
             channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
             self.writer.add_message(channel, log_time, d.payload, log_time,
                                     sequence=(att.seq if att else 0) & 0xFFFFFFFF)
