@@ -268,3 +268,74 @@ def test_a_fast_swing_seen_at_5_hz_is_followed_through_its_turns() -> None:
         if result.fit is None or np.linalg.norm(result.fit.centre[:2] - at(t)[:2]) > 0.01:
             missed.append((round(t, 1), result.reason))
     assert not missed
+
+
+def test_a_window_holds_every_point_of_an_organized_cloud_within_its_sphere() -> None:
+    from wavegrasp.perception.window import PixelRays
+    from wavegrasp.wavetank.camera import TrisectCamera
+
+    cam = TrisectCamera(np.eye(4), width=160, height=120)
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-1.0, -0.8, 0.3], [1.0, 0.8, 2.5], (40_000, 3))
+    in_view = (np.abs(points[:, :2] / points[:, 2:]) < [0.65, 0.5]).all(axis=1)
+    image = cam.organize(points[in_view])
+    xyz = image.reshape(cam.height, cam.width, 3)
+    rays = PixelRays.learn(xyz)
+    assert rays is not None and rays.margin_px < 3
+    rows, cols = np.mgrid[0:cam.height, 0:cam.width]
+    for _ in range(200):
+        centre, radius = rng.uniform([-0.6, -0.5, 0.5], [0.6, 0.5, 2.2]), rng.uniform(0.02, 0.4)
+        inside = np.linalg.norm(xyz - centre, axis=-1) < radius  # NaN pixels: False
+        window = rays.window(centre, radius)
+        if window is None:
+            assert centre[2] <= radius
+            continue
+        r, c = window
+        held = (rows >= r.start) & (rows < r.stop) & (cols >= c.start) & (cols < c.stop)
+        assert not (inside & ~held).any()
+        assert held.sum() < 0.8 * held.size or radius > 0.2  # a window, not the whole image
+    scattered = rng.uniform(-1, 1, xyz.shape) + [0, 0, 2]  # points not on their pixels' rays
+    assert PixelRays.learn(scattered.astype(np.float32)) is None
+
+
+def test_organized_clouds_read_in_windows_give_the_observations_of_whole_frames(
+        tmp_path: Path) -> None:
+    """Following the object, perception reads only the pixels that can hold it, and finds
+    exactly what it finds reading every frame whole."""
+    from wavegrasp.wavetank.scenario import CameraSpec, paper_scenario
+
+    path = tmp_path / "organized.mcap"
+    generate(paper_scenario(2, "can_half", seconds=4.0, seed=2, preroll_s=5.0,
+                            camera=CameraSpec(width=336, height=188, rate_hz=15.0,
+                                              cloud="organized")), path)
+    messages = [m for m in open_recording(path).messages()
+                if m.topic in ("/tf_static", "/trisect/points")]
+    observed = {}
+    for windows in (True, False):
+        bus = Bus(Settings(service="perception", zenoh_mode="peer", zenoh_connect=[],
+                           zenoh_listen=[]))
+        try:
+            service = PerceptionService(PerceptionSettings(
+                service="perception", read_windows=windows), bus=bus)
+            seen: list[ObjectObservation] = []
+            bus.subscribe("wavegrasp/perception/object", lambda m, d: seen.append(m),
+                          ObjectObservation)
+            routes = {key: i for i, key in enumerate(bus.subscriptions)}
+            for m in messages:
+                key = m.topic.lstrip("/")
+                assert bus.dispatch(Delivery(key, m.cdr, CDR, None, 0, routes[key]))
+            frames = sum(m.topic == "/trisect/points" for m in messages)
+
+            def all_seen() -> bool:
+                while not bus.inbox.empty():
+                    bus.dispatch(bus.inbox.get())
+                return len(seen) >= frames
+
+            assert wait_until(all_seen, timeout=10)
+            read = service.counters["frames read in a window"]
+            assert (read >= 0.8 * frames) if windows else read == 0, (read, frames)
+            observed[windows] = [m.model_dump(exclude={"header"}) for m in seen]
+        finally:
+            bus.close()
+    assert sum(o["centroid"] is not None for o in observed[False]) >= 0.8 * len(observed[False])
+    assert observed[True] == observed[False]

@@ -26,11 +26,14 @@ from wavegrasp.checks import StampOrder
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
+from wavegrasp.perception.window import PixelRays
 from wavegrasp.recording_io.ros_msgs import (
+    Cloud,
+    CloudView,
     StaticTransforms,
-    decode_points,
     decode_tf,
     encode_points,
+    view_points,
 )
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.placement import background_thread
@@ -45,6 +48,8 @@ OBJECT_KEY = "wavegrasp/perception/object"
 #: The points taken as the object's, in ``world`` (a PointCloud2, CDR: what viewers show).
 POINTS_KEY = "wavegrasp/perception/points"
 MESH_KEY = "wavegrasp/perception/mesh"
+#: Frames read whole to learn an organized cloud's pixel rays from before giving up.
+RAY_TRIES = 10
 
 
 class PerceptionSettings(Settings):
@@ -59,6 +64,9 @@ class PerceptionSettings(Settings):
                              "list); empty: the service's own")
     max_cloud_points: int = Field(2_000_000, gt=0, description="a bigger camera frame (width "
                                   "x height) is refused unread: the camera sends ~40k points")
+    read_windows: bool = Field(True, description="while the object is followed, read of an "
+                               "organized cloud only the pixels that can hold it "
+                               "(perception/window.py); false: every frame whole")
 
 
 def observation(header: Header, fit: ShapeFit, points_used: int,
@@ -110,6 +118,8 @@ class PerceptionService(Service):
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
         self._waiting: Delivery | None = None  # a frame whose transform has not come yet
         self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
+        self.rays: PixelRays | None = None  # an organized cloud's pixels, learnt
+        self._ray_tries = 0
         self.bus.subscribe("tf_static", self.on_tf)
         self.bus.subscribe("trisect/points", self.on_points)
 
@@ -166,7 +176,7 @@ class PerceptionService(Service):
     def process_frame(self, d: Delivery, wait_for_tf: bool = False) -> bool:
         """Process a frame; True if it has to wait for its camera transform."""
         try:
-            cloud = decode_points(d.payload, max_points=self.cfg.max_cloud_points)
+            cloud = self.read(view_points(d.payload, max_points=self.cfg.max_cloud_points))
         except ValueError as exc:
             self.publish_missing(new_header(self.name, 0, self.clock.now_ns()), f"bad cloud: {exc}")
             raise
@@ -199,6 +209,41 @@ class PerceptionService(Service):
         if self.perception.prior is not None:
             self.accumulator.add(result.points, result.fit.centre, frame_along(result.fit.axis))
         return False
+
+    def read(self, view: CloudView) -> Cloud:
+        """A frame's finite points: of an organized cloud while the object is followed, only
+        the window of pixels that can hold the points perception will search
+        (:mod:`~wavegrasp.perception.window`); otherwise, or where the window holds none,
+        all of them."""
+        if not view.organized:
+            return view.points()
+        window = self.window(view)
+        if window is not None:
+            cloud = view.points(*window)
+            if len(cloud.points):
+                self.counters["frames read in a window"] += 1
+                return cloud
+        cloud = view.points()
+        if self.rays is None and self._ray_tries < RAY_TRIES:
+            self._ray_tries += 1
+            self.rays = PixelRays.learn(view.xyz)
+            if self.rays is None and self._ray_tries == RAY_TRIES:
+                log.warning("the organized cloud's points do not lie on their pixels' rays: "
+                            "every frame is read whole")
+        return cloud
+
+    def window(self, view: CloudView) -> tuple[slice, slice] | None:
+        """The rows and columns of ``view`` to read, or None: read it all."""
+        rays = self.rays if self.cfg.read_windows else None
+        region = self.perception.search_region(view.stamp_ns)
+        if rays is None or region is None or view.xyz.shape[:2] != (rays.height, rays.width):
+            return None
+        try:
+            T = self.tf.lookup("world", view.frame_id)
+        except ValueError:
+            return None
+        predicted, radius = region
+        return rays.window((predicted - T[:3, 3]) @ T[:3, :3], radius)
 
     def publish_missing(self, header: Header, reason: str) -> None:
         self.counters[f"missing: {reason.split(':')[0]}"] += 1

@@ -158,8 +158,7 @@ class Perception:
     def process(self, points: np.ndarray, T_world_cam: np.ndarray, stamp_ns: int) -> FrameResult:
         """points : array, shape (n, 3), metres, camera frame; T_world_cam : (4, 4)."""
         self.frames += 1
-        if self.frame_ns is not None and stamp_ns > self.frame_ns:
-            self.intervals.append((stamp_ns - self.frame_ns) * 1e-9)
+        self.intervals = self._intervals_with(stamp_ns)
         self.frame_ns = stamp_ns
         eye = T_world_cam[:3, 3]
         if self.track is None:
@@ -251,13 +250,25 @@ class Perception:
                 return joined(c, found, cfg.join_m, cfg.join_min_width_m), world
         return "no object-like cluster in the workspace"
 
-    def _follow(self, points: np.ndarray, T: np.ndarray, stamp_ns: int
-                ) -> tuple[np.ndarray, np.ndarray] | str:
-        """The cluster nearest where the track predicts the object and the points near there
-        (before the density filter), world; or why none."""
+    def _intervals_with(self, stamp_ns: int) -> deque[float]:
+        """The intervals between the last frames once a frame stamped ``stamp_ns`` came."""
+        intervals = deque(self.intervals, maxlen=self.intervals.maxlen)
+        if self.frame_ns is not None and stamp_ns > self.frame_ns:
+            intervals.append((stamp_ns - self.frame_ns) * 1e-9)
+        return intervals
+
+    def search_region(self, stamp_ns: int) -> tuple[np.ndarray, float] | None:
+        """Where :meth:`process` will look for the object in the next frame, stamped
+        ``stamp_ns``: the centre (3,), metres, world, and radius, metres, of the sphere whose
+        points it takes; None while it has no track (it searches the whole workspace)."""
+        if self.track is None:
+            return None
+        return self._region(stamp_ns, self._intervals_with(stamp_ns))
+
+    def _region(self, stamp_ns: int, intervals: deque[float]) -> tuple[np.ndarray, float]:
         cfg = self.cfg
         dt = max(0.0, (stamp_ns - self.last_stamp_ns) * 1e-9)
-        predicted = self._predicted(stamp_ns)
+        predicted = self._predicted(stamp_ns, intervals)
         # Its largest extent: a flat ellipsoid's length (along its axis) is less than its
         # width, and searched for within that, a 5 Hz camera lost it in one frame in three.
         size = max(self.prior.length, 2.0 * self.prior.radius) if self.prior is not None \
@@ -268,9 +279,16 @@ class Perception:
         # for a second after each miss, 16 % of frames observed). Not on every frame: the
         # wider search took in more than the object, and a 30 Hz camera's ellipsoid was
         # refused in 172 frames of 900, not 52 (random-7-028).
-        unseen = dt - float(np.median(self.intervals)) if self.intervals else 0.0
+        unseen = dt - float(np.median(intervals)) if intervals else 0.0
         top = max((v for _, v in self.speeds), default=0.0)
-        radius = size / 2 + cfg.gate_m + top * max(unseen, 0.0)
+        return predicted, size / 2 + cfg.gate_m + top * max(unseen, 0.0)
+
+    def _follow(self, points: np.ndarray, T: np.ndarray, stamp_ns: int
+                ) -> tuple[np.ndarray, np.ndarray] | str:
+        """The cluster nearest where the track predicts the object and the points near there
+        (before the density filter), world; or why none."""
+        cfg = self.cfg
+        predicted, radius = self._region(stamp_ns, self.intervals)
         centre_cam = (predicted - T[:3, 3]) @ T[:3, :3]  # predicted centre in the camera frame
         offset = points - centre_cam
         near = np.einsum("ij,ij->i", offset, offset) < radius**2
@@ -283,7 +301,7 @@ class Perception:
         nearest = min(big, key=lambda q: np.linalg.norm(q.mean(axis=0) - predicted))
         return joined(nearest, found, cfg.join_m, cfg.join_min_width_m), world
 
-    def _predicted(self, stamp_ns: int) -> np.ndarray:
+    def _predicted(self, stamp_ns: int, intervals: deque[float]) -> np.ndarray:
         """Where the track puts the object at ``stamp_ns``: the parabola through its last
         three centroids (a line through two), at most one frame interval past the last.
 
@@ -296,7 +314,7 @@ class Perception:
             return self.track
         ts = np.array([t for t, _ in self.fits]) - self.fits[-1][0]
         ps = np.array([p for _, p in self.fits])
-        frame = float(np.median(self.intervals)) if self.intervals else 0.0
+        frame = float(np.median(intervals)) if intervals else 0.0
         tau = min(max(stamp_ns * 1e-9 - self.fits[-1][0], 0.0), frame)
         coef = np.linalg.solve(np.vander(ts), ps)  # exact through them: distinct stamps
         return np.vander([tau], len(ts))[0] @ coef

@@ -38,11 +38,47 @@ def stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
+@dataclass(frozen=True)
+class CloudView:
+    """A PointCloud2's x, y, z as they lie in its bytes, not yet read: ``xyz`` (height,
+    width, 3) float32 or float64, metres, frame ``frame_id``, NaN or inf where a camera found
+    nothing; ``stamp_ns``. Reading a part of it (a window of an organized cloud's pixels) reads
+    only that part."""
+
+    xyz: np.ndarray
+    frame_id: str
+    stamp_ns: int
+
+    @property
+    def organized(self) -> bool:
+        return self.xyz.shape[0] > 1
+
+    def points(self, rows: slice = slice(None), cols: slice = slice(None)) -> Cloud:
+        """The finite points of the pixels ``rows`` x ``cols`` (all by default), in the
+        cloud's order, as a :class:`Cloud` (float32)."""
+        pts = self.xyz[rows, cols].reshape(-1, 3).astype(np.float32, copy=False)
+        # Per frame on the camera-to-decision path: a clean cloud is checked in one pass and
+        # not copied; otherwise per-axis tests and compress, not all(axis=1) and a boolean
+        # index (0.06 + 0.10 ms against 0.51 + 0.39 ms for 37 000 points).
+        check = np.isfinite(pts)
+        if check.all():
+            return Cloud(pts, self.frame_id, self.stamp_ns, 0)
+        finite = check[:, 0] & check[:, 1] & check[:, 2]
+        return Cloud(np.compress(finite, pts, axis=0), self.frame_id, self.stamp_ns,
+                     int(len(pts) - finite.sum()))
+
+
 def decode_points(cdr: bytes, max_points: int | None = None) -> Cloud:
     """x, y, z of a ``sensor_msgs/msg/PointCloud2``; points with NaN or inf are dropped.
 
     A cloud of more than ``max_points`` points (width x height) is refused before it is read.
     """
+    return view_points(cdr, max_points).points()
+
+
+def view_points(cdr: bytes, max_points: int | None = None) -> CloudView:
+    """:func:`decode_points`' checks, then the cloud's x, y, z as a view of its bytes (only
+    a layout that is not x, y, z side by side is copied)."""
     msg = _deserialize(cdr, "sensor_msgs/msg/PointCloud2")
     n = int(msg.width) * int(msg.height)
     if max_points is not None and n > max_points:
@@ -78,16 +114,9 @@ def decode_points(cdr: bytes, max_points: int | None = None) -> Cloud:
                           "itemsize": max(step, 1)})
         raw = np.frombuffer(msg.data, dtype=dtype, count=n) if n else np.zeros(0, dtype)
         pts = np.stack([raw["x"], raw["y"], raw["z"]], axis=1)
-    pts = pts.astype(np.float32, copy=False)
-    # Per frame on the camera-to-decision path: a clean cloud is checked in one pass and not
-    # copied; otherwise per-axis tests and compress, not all(axis=1) and a boolean index
-    # (0.06 + 0.10 ms against 0.51 + 0.39 ms for 37 000 points).
-    check = np.isfinite(pts)
-    if check.all():
-        return Cloud(pts, msg.header.frame_id, stamp_ns(msg.header), 0)
-    finite = check[:, 0] & check[:, 1] & check[:, 2]
-    return Cloud(np.compress(finite, pts, axis=0), msg.header.frame_id, stamp_ns(msg.header),
-                 int(n - finite.sum()))
+    height = int(msg.height) if n else 1
+    return CloudView(pts.reshape(height, n // height, 3), msg.header.frame_id,
+                     stamp_ns(msg.header))
 
 
 def encode_points(points: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:

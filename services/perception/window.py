@@ -1,0 +1,80 @@
+"""Where in an organized cloud the object can be, so that only those pixels are read.
+
+An organized cloud (a stereo camera's: height x width, a point per pixel, NaN where matching
+found nothing) holds each point at the pixel its ray goes through: in a rectified camera a
+point's x / z is linear in its column and y / z in its row. :meth:`PixelRays.learn` finds
+those lines from one frame; :meth:`PixelRays.window` gives the rows and columns of every
+pixel whose ray meets a sphere, the region perception searches while it follows the object.
+Every point inside the sphere is inside the window, in the order the whole cloud has it, so
+following reads the window and finds what it would have found in the whole cloud: a 672 x
+376 frame is 252 672 points, the window round a 15 cm object a metre away a few thousand.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A cloud whose points lie further than this from the lines, pixels, is not organized by
+#: its rays (it is not read in windows).
+MAX_RESIDUAL_PX = 2.0
+#: Points needed to learn the lines from.
+MIN_POINTS = 100
+
+
+@dataclass(frozen=True)
+class PixelRays:
+    """column = fx * x / z + cx and row = fy * y / z + cy, give or take ``margin_px``, for
+    every point of a ``height`` x ``width`` organized cloud (camera frame, z ahead)."""
+
+    fx: float
+    cx: float
+    fy: float
+    cy: float
+    margin_px: float
+    width: int
+    height: int
+
+    @classmethod
+    def learn(cls, xyz: np.ndarray) -> PixelRays | None:
+        """The lines of an organized cloud's ``xyz`` (height, width, 3), metres, camera frame;
+        None if it has too few points ahead of the camera or they do not lie on lines."""
+        height, width = xyz.shape[:2]
+        z = xyz[..., 2]
+        rows, cols = np.nonzero(np.isfinite(xyz).all(axis=-1) & (z > 0))
+        if len(rows) < MIN_POINTS or width < 2 or height < 2:
+            return None
+        p = np.asarray(xyz[rows, cols], dtype=float)
+        fit = []
+        for slope, index in ((p[:, 0] / p[:, 2], cols), (p[:, 1] / p[:, 2], rows)):
+            if np.ptp(slope) <= 0:
+                return None
+            f, c = np.polyfit(slope, index + 0.5, 1)
+            fit.append((f, c, float(np.abs(index + 0.5 - (f * slope + c)).max())))
+        (fx, cx, ex), (fy, cy, ey) = fit
+        if max(ex, ey) > MAX_RESIDUAL_PX:
+            return None
+        return cls(fx, cx, fy, cy, max(ex, ey) + 1.0, width, height)
+
+    def window(self, centre: np.ndarray, radius: float) -> tuple[slice, slice] | None:
+        """The rows and columns holding every point within ``radius`` metres of ``centre``
+        (3,), metres, camera frame; None where the sphere reaches the camera's plane (read
+        everything)."""
+        x, y, z = (float(v) for v in centre)
+        if z <= radius:
+            return None
+        return (_span(y, z, radius, self.fy, self.cy, self.margin_px, self.height),
+                _span(x, z, radius, self.fx, self.cx, self.margin_px, self.width))
+
+
+def _span(a: float, z: float, r: float, f: float, c: float, margin: float, size: int
+          ) -> slice:
+    """The pixels along one image axis whose slopes a / z reach the circle of radius ``r``
+    round (a, z): between the slopes of its two tangents through the camera."""
+    root = r * math.sqrt(a * a + z * z - r * r)
+    ends = [f * (a * z + s * root) / (z * z - r * r) + c for s in (-1.0, 1.0)]
+    lo = max(0, math.floor(min(ends) - margin))
+    hi = min(size, math.ceil(max(ends) + margin) + 1)
+    return slice(lo, max(lo, hi))
