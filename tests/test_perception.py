@@ -310,32 +310,38 @@ def test_organized_clouds_read_in_windows_give_the_observations_of_whole_frames(
                                               cloud="organized")), path)
     messages = [m for m in open_recording(path).messages()
                 if m.topic in ("/tf_static", "/trisect/points")]
+    frames = sum(m.topic == "/trisect/points" for m in messages)
     observed = {}
     for windows in (True, False):
-        bus = Bus(Settings(service="perception", zenoh_mode="peer", zenoh_connect=[],
-                           zenoh_listen=[]))
-        try:
-            service = PerceptionService(PerceptionSettings(
-                service="perception", read_windows=windows), bus=bus)
-            seen: list[ObjectObservation] = []
-            bus.subscribe("wavegrasp/perception/object", lambda m, d: seen.append(m),
-                          ObjectObservation)
-            routes = {key: i for i, key in enumerate(bus.subscriptions)}
-            for m in messages:
-                key = m.topic.lstrip("/")
-                assert bus.dispatch(Delivery(key, m.cdr, CDR, None, 0, routes[key]))
-            frames = sum(m.topic == "/trisect/points" for m in messages)
-
-            def all_seen() -> bool:
-                while not bus.inbox.empty():
-                    bus.dispatch(bus.inbox.get())
-                return len(seen) >= frames
-
-            assert wait_until(all_seen, timeout=10)
-            read = service.counters["frames read in a window"]
-            assert (read >= 0.8 * frames) if windows else read == 0, (read, frames)
-            observed[windows] = [m.model_dump(exclude={"header"}) for m in seen]
-        finally:
-            bus.close()
+        observed[windows], read = observations(messages, frames, read_windows=windows)
+        assert (read >= 0.8 * frames) if windows else read == 0, (read, frames)
     assert sum(o["centroid"] is not None for o in observed[False]) >= 0.8 * len(observed[False])
     assert observed[True] == observed[False]
+
+
+def observations(messages: list, frames: int, **settings) -> tuple[list[dict], int]:
+    """A perception service's observations of recorded ``messages`` (their headers aside),
+    and how many frames it read in a window."""
+    bus = Bus(Settings(service="perception", zenoh_mode="peer", zenoh_connect=[],
+                       zenoh_listen=[]))
+    try:
+        service = PerceptionService(PerceptionSettings(service="perception", **settings),
+                                    bus=bus)
+        seen: list[ObjectObservation] = []
+        bus.subscribe("wavegrasp/perception/object", lambda m, d: seen.append(m),
+                      ObjectObservation)
+        routes = {key: i for i, key in enumerate(bus.subscriptions)}
+        for m in messages:
+            key = m.topic.lstrip("/")
+            assert bus.dispatch(Delivery(key, m.cdr, CDR, None, 0, routes[key]))
+
+        def all_seen() -> bool:
+            while not bus.inbox.empty():
+                bus.dispatch(bus.inbox.get())
+            return len(seen) >= frames
+
+        assert wait_until(all_seen, timeout=10)
+        return ([m.model_dump(exclude={"header"}) for m in seen],
+                service.counters["frames read in a window"])
+    finally:
+        bus.close()
