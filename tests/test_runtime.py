@@ -300,3 +300,19 @@ def test_a_state_file_is_overwritten_in_place_and_always_whole(tmp_path) -> None
     assert StateFile(path).load() == {"frames": 4}
     state.clear()
     assert not path.exists() and StateFile(path).load() is None
+
+
+def test_the_recorder_writes_every_cloud_of_a_small_camera_and_thins_a_big_one() -> None:
+    from wavegrasp.recorder.thinning import SAMPLE, CloudThinner
+
+    small = CloudThinner(0, budget_mb_s=20.0)  # 30 000 points at 10 Hz: 5 MB/s
+    assert all(small.keep(480_000, i * 100_000_000) for i in range(100))
+    assert small.every == 1
+    big = CloudThinner(0, budget_mb_s=20.0)  # 8 MB organized clouds at 30 Hz: 243 MB/s
+    kept = [i for i in range(SAMPLE + 40) if big.keep(8_085_645, i * 33_333_333)]
+    assert big.every == 13 and big.rate_mb_s == pytest.approx(242.6, abs=0.1)
+    assert kept == [*range(SAMPLE), SAMPLE, SAMPLE + 13, SAMPLE + 26, SAMPLE + 39]
+    fixed = CloudThinner(3, budget_mb_s=20.0)
+    assert [i for i in range(10) if fixed.keep(8_085_645, i)] == [0, 3, 6, 9]
+    with pytest.raises(ValueError, match="cloud_every"):
+        CloudThinner(-1, 20.0)

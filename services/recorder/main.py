@@ -36,6 +36,7 @@ from pydantic import BaseModel, Field, field_validator
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.recorder.summary import RunSummary
+from wavegrasp.recorder.thinning import SAMPLE, CloudThinner
 from wavegrasp.recording_io.ros_msgs import (
     StaticTransforms,
     decode_points,
@@ -83,9 +84,12 @@ class RecorderSettings(Settings):
                                    "the camera's points (frames are acknowledged on them)")
     record_exclude: list[str] = Field(default_factory=list,
                                       description="key expressions not to write")
-    cloud_every: int = Field(1, ge=1, description="write one camera cloud in this many to "
-                             "run.mcap and run.rrd (as rosbag2 users throttle a camera); "
-                             "every frame is still acknowledged")
+    cloud_every: int = Field(0, ge=0, description="write one camera cloud in this many to "
+                             "run.mcap and run.rrd (as rosbag2 users throttle a camera; every "
+                             "frame is still acknowledged); 0: as many as cloud_budget_mb_s "
+                             "allows, judged on the first clouds")
+    cloud_budget_mb_s: float = Field(20.0, gt=0, description="with cloud_every 0, the "
+                                     "megabytes of camera clouds a second written at most")
     mcap_compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="run.mcap's "
                                                              "chunk compression")
     rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
@@ -137,7 +141,7 @@ class Recorder(Service):
         self._file = self.path.open("wb")
         self.writer = Writer(self._file,
                              compression=CompressionType[settings.mcap_compression.upper()])
-        self.cloud_every = settings.cloud_every
+        self.thinner = CloudThinner(settings.cloud_every, settings.cloud_budget_mb_s)
         self._thinned = False  # the last camera cloud was left out (cloud_every)
         self.writer.start(profile="ros2", library="wavegrasp recorder")
         self._schemas: dict[tuple[str, str], int] = {}
@@ -226,17 +230,25 @@ class Recorder(Service):
         msgtype = d.schema or ROS_KEYS.get(d.key)
         if msgtype is None:
             raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
-        # One camera cloud in cloud_every is written (the first always); all are acknowledged.
-        self._thinned = d.key == POINTS_KEY and self.frames % self.cloud_every != 0
-        write = not self.skips(d.key) and not self._thinned
         try:
             att = CdrAttachment.decode(d.attachment)
+        except ValueError as exc:
+            raise BadMessage(f"{d.key}: {exc}") from None
+        log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
+        # Camera clouds as the thinner says (all are acknowledged).
+        self._thinned = d.key == POINTS_KEY and not self.skips(d.key) and not (
+            self.thinner.keep(len(d.payload), log_time))
+        if d.key == POINTS_KEY and self.thinner.rate_mb_s is not None and (
+                self.thinner.count == SAMPLE):
+            log.info("camera clouds: %.1f MB a second: writing one in %d (cloud_every, "
+                     "cloud_budget_mb_s)", self.thinner.rate_mb_s, self.thinner.every)
+        write = not self.skips(d.key) and not self._thinned
+        try:
             if write:
                 self._typestore.deserialize_cdr(d.payload, msgtype)
                 msgdef = ros2_msgdef(msgtype)
         except Exception as exc:  # rosbags raises many types on garbage
             raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
-        log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
         if write:
             channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
             self.writer.add_message(channel, log_time, d.payload, log_time,
