@@ -13,6 +13,8 @@ expressions; everything by default) and does not write keys matching ``record_ex
 truth its cached input recordings already hold, nor the frame acknowledgements; the clouds
 still arrive, because the recorder acknowledges camera frames, and the rest are not
 subscribed at all.
+Camera clouds are thinned to ``cloud_budget_mb_s`` (:mod:`wavegrasp.recorder.thinning`): a
+10 Hz camera's are all written, a 30 Hz organized camera's one in N.
 ``run.rrd`` is the same run for the rerun viewer (:mod:`wavegrasp.recorder.rerun_log`);
 with ``viewer_url`` the recorder also streams it live to a viewer (``wavegrasp viewer``).
 """
