@@ -94,6 +94,17 @@ def recorder_deliveries(bus: Bus, recording: Path) -> tuple[list, list[Delivery]
     return frames, deliveries
 
 
+def recorder_acks(bus: Bus, count: int) -> list[int]:
+    """The frames the recorder acknowledged: its acknowledgements come back to it through
+    its "**" subscription."""
+    acks: list[int] = []
+    while len(acks) < count:
+        d = bus.inbox.get(timeout=5.0)
+        if d.key == "wavegrasp/recorder/ack":
+            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
+    return acks
+
+
 @pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
 def test_recorder_handlers_driven_directly(isolated_bus: Bus, recording: Path,
                                            tmp_path: Path) -> None:
@@ -121,12 +132,7 @@ def test_recorder_leaves_out_excluded_keys_but_acknowledges_frames(
     for d in deliveries:
         isolated_bus.dispatch(d)
     assert rec.frames == 3
-    acks = []  # the recorder's own acknowledgements come back through its "**" subscription
-    while len(acks) < 3:
-        d = isolated_bus.inbox.get(timeout=5.0)
-        if d.key == "wavegrasp/recorder/ack":
-            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
-    assert acks == [0, 1, 2]
+    assert recorder_acks(isolated_bus, 3) == [0, 1, 2]
     rec.on_stop()
     with rec.path.open("rb") as f:
         topics = {c.topic for _, c, _ in make_reader(f).iter_messages(log_time_order=False)}
@@ -145,12 +151,7 @@ def test_the_recorder_writes_one_cloud_in_cloud_every_and_acknowledges_them_all(
         isolated_bus.dispatch(d)
     # The junk frame falls on a cloud left out: like an excluded key's, it is not read.
     assert rec.frames == 3 and not isolated_bus.bad
-    acks = []
-    while len(acks) < 3:
-        d = isolated_bus.inbox.get(timeout=5.0)
-        if d.key == "wavegrasp/recorder/ack":
-            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
-    assert acks == [0, 1, 2]
+    assert recorder_acks(isolated_bus, 3) == [0, 1, 2]
     rec.on_stop()
     with rec.path.open("rb") as f:
         reader = make_reader(f)
