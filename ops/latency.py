@@ -102,9 +102,9 @@ def read_latency(path: Path) -> Latency:
                 msg = json.loads(message.data)
                 if topic == OBSERVATION_KEY:
                     observed.add(msg["header"]["seq"])
-                    lat.to_observation.append(_since_capture_ms(msg))
+                    _add_since_capture(lat.to_observation, msg)
                 elif topic == PREDICTION_KEY:
-                    lat.to_prediction.append(_since_capture_ms(msg))
+                    _add_since_capture(lat.to_prediction, msg)
                 elif topic == PLAN_KEY:
                     plans[msg["plan_id"]] = msg
                 else:
@@ -155,12 +155,13 @@ def merge(runs: list[Latency]) -> Latency:
     return out
 
 
-def _since_capture_ms(msg: dict) -> float:
-    """Milliseconds from the camera frame's publish (the trace's source) to ``msg``'s send."""
+def _add_since_capture(values: list[float], msg: dict) -> None:
+    """Append the milliseconds from the camera frame's publish (the trace's source) to
+    ``msg``'s send; nothing for a message whose trace has no source (a camera that sends no
+    publish time)."""
     trace = msg["header"]["trace"]
-    if not trace or trace[0]["service"] != "source":
-        raise ValueError(f"seq {msg['header']['seq']}: trace does not start at the source")
-    return (trace[-1]["sent_ns"] - trace[0]["sent_ns"]) / NS_PER_MS
+    if trace and trace[0]["service"] == "source":
+        values.append((trace[-1]["sent_ns"] - trace[0]["sent_ns"]) / NS_PER_MS)
 
 
 def _add_decision(lat: Latency, msg: dict, plan: dict | None) -> None:

@@ -32,8 +32,12 @@ def write_run(path: Path, observed: list[int], decisions: list[list[Hop]]) -> No
         schema = w.register_schema("x", "jsonschema", b"{}")
         obs = w.register_channel("wavegrasp/perception/object", "json", schema)
         dec = w.register_channel("wavegrasp/gate/decision", "json", schema)
-        for seq in observed:
-            msg = ObjectObservation(header=Header(seq=seq, stamp_ns=seq * 100 * MS))
+        for seq in observed:  # the first without a trace (a camera that sends no publish time)
+            trace = [] if seq == observed[0] else [
+                Hop(service="source", recv_ns=seq * 100 * MS, sent_ns=seq * 100 * MS),
+                Hop(service="perception", recv_ns=seq * 100 * MS + MS,
+                    sent_ns=seq * 100 * MS + 5 * MS)]
+            msg = ObjectObservation(header=Header(seq=seq, stamp_ns=seq * 100 * MS, trace=trace))
             w.add_message(obs, seq, msg.model_dump_json().encode(), seq)
         for k, trace in enumerate(decisions):
             msg = GateDecision(header=Header(seq=k, stamp_ns=k * 100 * MS, trace=trace),
@@ -56,6 +60,8 @@ def test_hops_and_end_to_end_from_decision_traces(tmp_path: Path) -> None:
     # 4 transfers of 1 ms, perception, 0.5 ms predictor, planner, 0.2 ms gate.
     assert lat.end_to_end == pytest.approx([13.7, 23.7, 18.7])
     assert (lat.frames_published, lat.frames_observed, lat.frames_dropped) == (6, 5, 1)
+    assert lat.to_observation == pytest.approx([5.0] * 4)  # every frame with a trace
+    assert rows["camera frame -> observation"]["n"] == 4
     assert "1 dropped" in format_table(lat)
     assert main([str(run), "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "latency.png").stat().st_size > 0
