@@ -89,7 +89,7 @@ def read_latency(path: Path) -> Latency:
     lat = Latency(Path(path))
     observed: set[int] = set()
     point_seqs: set[int] = set()
-    point_stamps: list[int] = []
+    point_stamps: list[tuple[int, int]] = []  # (sequence, log time ns) of each cloud
     plans: dict[str, dict] = {}
     topic, cut = "", ""
     try:
@@ -97,7 +97,7 @@ def read_latency(path: Path) -> Latency:
             topic = channel.topic
             if topic == POINTS_TOPIC:
                 point_seqs.add(message.sequence)
-                point_stamps.append(message.log_time)
+                point_stamps.append((message.sequence, message.log_time))
             elif channel.message_encoding == "json":
                 msg = json.loads(message.data)
                 if topic == OBSERVATION_KEY:
@@ -123,14 +123,17 @@ def read_latency(path: Path) -> Latency:
         raise ValueError(f"{path}: no {CHAIN_KEY} messages with a trace"
                          + (f" ({cut})" if cut else ""))
     lat.frames_observed = len(observed)
-    if point_seqs:  # the clouds were recorded: count what perception never reported
-        lat.frames_published = len(point_seqs)
-        lat.frames_dropped = len(point_seqs - observed)
-    elif observed:  # sequence gaps between the first frame and the last
-        lat.frames_published = max(observed) - min(observed) + 1
+    # The camera's sequence numbers run on from frame to frame: those between the first and
+    # the last that perception never reported were dropped (the recorder may have written
+    # only one cloud in N of a big camera's).
+    seqs = point_seqs | observed
+    if seqs:
+        lat.frames_published = max(seqs) - min(seqs) + 1
         lat.frames_dropped = lat.frames_published - len(observed)
     if len(point_stamps) > 1:
-        lat.frame_interval_ms = float(np.median(np.diff(sorted(point_stamps)))) / NS_PER_MS
+        seq, stamp = np.diff(np.array(sorted(point_stamps), dtype=float), axis=0).T
+        if (seq > 0).any():  # per frame, though only one cloud in N may be written
+            lat.frame_interval_ms = float(np.median(stamp[seq > 0] / seq[seq > 0])) / NS_PER_MS
     return lat
 
 

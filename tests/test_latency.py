@@ -25,11 +25,17 @@ def chain(t0: int, perception_ms: float, planner_ms: float) -> list[Hop]:
     return hops
 
 
-def write_run(path: Path, observed: list[int], decisions: list[list[Hop]]) -> None:
+def write_run(path: Path, observed: list[int], decisions: list[list[Hop]],
+              clouds: list[int] = ()) -> None:
+    """A run file: observations of frames ``observed``, the ``decisions``' traces, and the
+    camera clouds of frames ``clouds`` (their bytes do not matter here), 100 ms apart."""
     with path.open("wb") as f:
         w = Writer(f)
         w.start(profile="", library="test")
         schema = w.register_schema("x", "jsonschema", b"{}")
+        points = w.register_channel("/trisect/points", "cdr", schema)
+        for seq in clouds:
+            w.add_message(points, seq * 100 * MS, b"", seq * 100 * MS, sequence=seq)
         obs = w.register_channel("wavegrasp/perception/object", "json", schema)
         dec = w.register_channel("wavegrasp/gate/decision", "json", schema)
         for seq in observed:  # the first without a trace (a camera that sends no publish time)
@@ -76,6 +82,12 @@ def test_several_runs_are_taken_together(tmp_path: Path, capsys) -> None:
     assert lat.end_to_end == pytest.approx([13.7, 23.7, 18.7])
     assert (lat.frames_published, lat.frames_observed, lat.frames_dropped) == (6, 5, 1)
     assert {r["hop"]: r["n"] for r in lat.table()}["planner"] == 3
+    # A recorder that wrote one cloud in three: the frames and their interval still count.
+    write_run(a, observed=[0, 1, 2, 3, 4, 6, 7], decisions=[chain(10**18, 5.0, 4.0)],
+              clouds=[0, 3, 6])
+    thinned = read_latency(a)
+    assert (thinned.frames_published, thinned.frames_dropped) == (8, 1)
+    assert thinned.frame_interval_ms == pytest.approx(100.0)
     assert main([str(a), str(b)]) == 0
     assert "2 runs (" in capsys.readouterr().out
     assert main([str(a), str(tmp_path / "missing.mcap")]) == 2
