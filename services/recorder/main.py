@@ -144,7 +144,6 @@ class Recorder(Service):
         self.writer = Writer(self._file,
                              compression=CompressionType[settings.mcap_compression.upper()])
         self.thinner = CloudThinner(settings.cloud_every, settings.cloud_budget_mb_s)
-        self._thinned = False  # the last camera cloud was left out (cloud_every)
         self.writer.start(profile="ros2", library="wavegrasp recorder")
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[str, int] = {}
@@ -195,11 +194,11 @@ class Recorder(Service):
         kind = d.encoding.split(";")[0]
         msg = None
         if kind == CDR or (d.key in ROS_KEYS and kind != JSON):
-            self._record_cdr(d)
+            written = self._record_cdr(d)
         else:
             msg = self._record_json(d)
-        if self.rerun is not None and not self.skips(d.key) and not (
-                d.key == POINTS_KEY and self._thinned):
+            written = not self.skips(d.key)
+        if self.rerun is not None and written:
             try:
                 self.log_to_rerun(d, msg)
             except Exception as exc:  # the MCAP has it; the view goes without it
@@ -228,7 +227,9 @@ class Recorder(Service):
             T, _frame, stamp_ns = decode_pose(d.payload)
             r.truth(stamp_ns, T[:3, 3])
 
-    def _record_cdr(self, d: Delivery) -> None:
+    def _record_cdr(self, d: Delivery) -> bool:
+        """Write a CDR message (a camera cloud as the thinner says, one of a key excluded
+        not at all), acknowledging camera frames; returns whether it was written."""
         msgtype = d.schema or ROS_KEYS.get(d.key)
         if msgtype is None:
             raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
@@ -238,13 +239,11 @@ class Recorder(Service):
             raise BadMessage(f"{d.key}: {exc}") from None
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
         # Camera clouds as the thinner says (all are acknowledged).
-        self._thinned = d.key == POINTS_KEY and not self.skips(d.key) and not (
-            self.thinner.keep(len(d.payload), log_time))
-        if d.key == POINTS_KEY and self.thinner.rate_mb_s is not None and (
-                self.thinner.count == SAMPLE):
+        write = not self.skips(d.key) and (
+            d.key != POINTS_KEY or self.thinner.keep(len(d.payload), log_time))
+        if d.key == POINTS_KEY and self.thinner.count == SAMPLE and self.thinner.rate_mb_s:
             log.info("camera clouds: %.1f MB a second: writing one in %d (cloud_every, "
                      "cloud_budget_mb_s)", self.thinner.rate_mb_s, self.thinner.every)
-        write = not self.skips(d.key) and not self._thinned
         try:
             if write:
                 self._typestore.deserialize_cdr(d.payload, msgtype)
@@ -262,6 +261,7 @@ class Recorder(Service):
             self.ack_frame(Header(seq=att.seq, stamp_ns=log_time, trace=[Hop(
                 service="source", recv_ns=att.source_ns, sent_ns=att.source_ns)]),
                 d.recv_ns, att.seq)
+        return write
 
     def skips(self, key: str) -> bool:
         """Whether ``key`` matches ``record_exclude``."""
