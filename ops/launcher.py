@@ -34,7 +34,7 @@ from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.reader import RecordingError, open_for_replay
-from wavegrasp.runtime.bus import Bus, Delivery
+from wavegrasp.runtime.bus import Bus, Delivery, remove_orphaned_segments
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
 
@@ -118,7 +118,8 @@ class Launcher:
         self._pumps.append(pump)
 
     def connect(self) -> None:
-        settings = Settings.from_env("launcher", env=self.env, connect_timeout_s=20.0)
+        settings = Settings.from_env("launcher", env=self.env, connect_timeout_s=20.0,
+                                  shared_memory_mb=0)  # it sends nothing large
         self.bus = Bus(settings)
         self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/*/stats", self.on_stats, ServiceStats)
@@ -255,6 +256,7 @@ class Launcher:
             self.bus = None
         for pump in self._pumps:
             pump.join(timeout=2.0)
+        remove_orphaned_segments()  # the services' own, and those of any that was killed
 
     def stop_together(self, names: list[str]) -> None:
         """SIGTERM to each of ``names`` at once, then wait for each; a service that ignores

@@ -328,6 +328,9 @@ class ServiceStats(Message):
     service: str
     subscriptions: list[str] = Field(default_factory=list)
     received: dict[str, Count] = Field(default_factory=dict)
+    received_shared: dict[str, Count] = Field(
+        default_factory=dict, description="of those received, how many came through zenoh's "
+        "shared memory (from a process on this host), per key")
     bad: dict[str, Count] = Field(default_factory=dict)
     last_bad_reason: dict[str, str] = Field(default_factory=dict)
     counters: dict[str, Count] = Field(default_factory=dict,

@@ -62,8 +62,8 @@ class Router:
             time.sleep(0.05)
         raise RuntimeError("router did not start listening")
 
-    def bus(self, name: str = "test") -> Bus:
-        return Bus(Settings.from_env(name, env=self.env))
+    def bus(self, name: str = "test", **env: str) -> Bus:
+        return Bus(Settings.from_env(name, env={**self.env, **env}))
 
 
 @pytest.fixture

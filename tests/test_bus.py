@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import os
 import queue
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
 
+import pytest
+
+from wavegrasp.runtime.bus import memory_lock_limit, remove_orphaned_segments
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import Header, Hop, ObjectObservation, ServiceStats, Vec3, health_key
 
@@ -130,3 +137,67 @@ def test_own_keys_arrive_in_the_order_they_were_sent(router: Router) -> None:
     finally:
         sender.close()
         receiver.close()
+
+
+def test_large_payloads_cross_through_shared_memory_unless_it_is_off(router: Router) -> None:
+    """A camera-sized cloud reaches a subscriber on this host through zenoh's shared memory
+    (the router has it on too), intact; a small message and a sender with it off go over the
+    link; every segment left behind once the sessions close is removed."""
+    senders = {"on": router.bus("camera"),
+               "off": router.bus("camera", WAVEGRASP_SHARED_MEMORY_MB="0")}
+    receiver = router.bus()
+    try:
+        receiver.subscribe("wavegrasp/test/cloud", lambda d: None)
+        time.sleep(1.0)
+        cloud = bytes(range(256)) * 8192  # 2 MB
+        # zenoh sets up a sender's pool at its first large message, which goes over the link
+        senders["on"].publish_cdr("wavegrasp/test/cloud", cloud, "sensor_msgs/msg/PointCloud2")
+        receiver.inbox.get(timeout=5)
+        for name, payload in [("on", cloud), ("on", b"small"), ("off", cloud)]:
+            senders[name].publish_cdr("wavegrasp/test/cloud", payload,
+                                      "sensor_msgs/msg/PointCloud2")
+            got = receiver.inbox.get(timeout=5)
+            assert got.payload == payload and receiver.dispatch(got)
+        assert receiver.received["wavegrasp/test/cloud"] == 3
+        # The large one, sent on; none where this process may not lock memory without limit.
+        expected = 1 if memory_lock_limit() is None else 0
+        assert receiver.received_shared["wavegrasp/test/cloud"] == expected
+    finally:
+        for bus in [*senders.values(), receiver]:
+            bus.close()
+    remove_orphaned_segments()
+    own = [p for p in Path("/dev/shm").glob("*.zenoh") if p.stem.isdigit()]
+    with contextlib.ExitStack() as held:  # none of ours left; another user's live ones stay
+        for path in own:
+            with contextlib.suppress(OSError):
+                fd = os.open(path, os.O_RDONLY)
+                held.callback(os.close, fd)
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                raise AssertionError(f"{path} is held by no process but was left")
+
+
+def test_only_segments_no_process_holds_are_removed(tmp_path: Path) -> None:
+    held, orphan, other = (tmp_path / n for n in ("11.zenoh", "12.zenoh", "notes.zenoh"))
+    for path in (held, orphan, other):
+        path.write_bytes(b"x")
+    fd = os.open(held, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH)  # as zenoh holds a segment it maps
+        assert remove_orphaned_segments(tmp_path) == 1
+    finally:
+        os.close(fd)
+    assert held.exists() and not orphan.exists() and other.exists()
+
+
+@pytest.mark.parametrize("ipc_lock", [False, True])
+def test_shared_memory_only_where_locked_memory_is_unlimited(ipc_lock: bool) -> None:
+    """Zenoh locks its pools in memory: under a limit it stalls or refuses them, so the bus
+    turns shared memory off there (a process without CAP_IPC_LOCK, as users and containers)."""
+    if ipc_lock and os.geteuid() != 0:
+        pytest.skip("only root holds CAP_IPC_LOCK here")
+    code = "from wavegrasp.runtime.bus import memory_lock_limit; print(memory_lock_limit())"
+    caps = [] if ipc_lock else ["setpriv", "--inh-caps=-all", "--bounding-set=-ipc_lock"]
+    out = subprocess.run(["prlimit", "--memlock=4194304", *caps, sys.executable, "-c", code],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ("None" if ipc_lock else "4194304")

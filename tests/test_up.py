@@ -13,6 +13,7 @@ import pytest
 from wavegrasp.ops.forked import forkable
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
+from wavegrasp.runtime.bus import memory_lock_limit
 
 from conftest import recorded, source_frames, wavegrasp_cmd
 
@@ -44,6 +45,12 @@ def test_up_fast_records_every_frame_bit_identical(recording: Path, tmp_path: Pa
     out = tmp_path / "run"
     summary = check_run(recording, out, run_up(recording, out))
     assert summary["bad_messages"] == {}
+    # Zenoh handed the clouds on through shared memory once it had set up the player's pool
+    # (at its first large message: the first few go over the link meanwhile).
+    # None where locked memory is limited (zenoh locks its pools: see memory_lock_limit).
+    for name in ("perception", "recorder"):
+        shared = summary["services"][name]["received_shared"].get("trisect/points", 0)
+        assert shared >= 45 if memory_lock_limit() is None else shared == 0, name
     # The run is itself a recording: the player can replay it.
     replay = open_recording(out / "run.mcap")
     assert set(replay.topics) == {"/trisect/points", "/tf_static", "/groundtruth/object"}

@@ -9,14 +9,18 @@ logged under its key and never stops the service.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
+import os
 import queue
+import resource
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -42,6 +46,32 @@ DATA_QUEUE_BATCHES = 16
 #: find, and every ``wavegrasp up`` waited half a second for its router (0.5 s -> 2 ms,
 #: ``zenoh.open`` of a router on loopback). A config file that sets it keeps its own.
 SCOUTING_DELAY = "scouting/delay"
+
+#: Zenoh's shared memory between the processes of one host: with it on in the sender, the
+#: router and the receiver, zenoh's transport puts each message larger than
+#: SHARED_MEMORY_MIN_BYTES in the sender's pool and hands on a reference; a receiver that
+#: cannot map it (another host, another container's /dev/shm) gets a copy over the link.
+SHARED_MEMORY = "transport/shared_memory"
+SHARED_MEMORY_MIN_BYTES = 3072
+
+CAP_IPC_LOCK = 14
+
+
+def memory_lock_limit() -> int | None:
+    """This process's limit on locked memory, bytes, or None where it has none (unlimited,
+    or root's CAP_IPC_LOCK). Zenoh locks its pools in memory, a sender's and every pool a
+    receiver maps: under a limit (8 MB for most users, and in containers) a pool larger than
+    it is never made, and one smaller stalled the messages it carried (measured: 1 of 10
+    arrived in 20 s). So shared memory is used only where nothing limits it."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    with contextlib.suppress(OSError, ValueError, StopIteration):
+        status = Path("/proc/self/status").read_text().splitlines()
+        effective = int(next(line for line in status if line.startswith("CapEff:")).split()[1], 16)
+        if effective >> CAP_IPC_LOCK & 1:
+            return None
+    return soft
 
 
 @dataclass(frozen=True)
@@ -75,8 +105,8 @@ def config_file(settings: Settings) -> str | None:
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
     """Zenoh config: the file from ``ZENOH_CONFIG`` if any (credentials, access control, TLS),
-    then our mode and explicit endpoints, multicast scouting and shared memory off on top, and
-    no wait for scouting in ``open`` unless the file asks for one.
+    then our mode and explicit endpoints, multicast scouting off and shared memory as the
+    settings say on top, and no wait for scouting in ``open`` unless the file asks for one.
 
     Raises
     ------
@@ -93,8 +123,13 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    # Shared memory would leave segments in /dev/shm when a process is killed.
-    conf.insert_json5("transport/shared_memory/enabled", "false")
+    shm = settings.shared_memory_mb > 0 and memory_lock_limit() is None
+    conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shm))
+    if shm:  # zenoh moves every message above the threshold into the pool by itself
+        conf.insert_json5(SHARED_MEMORY + "/transport_optimization/pool_size",
+                          json.dumps(settings.shared_memory_mb << 20))
+        conf.insert_json5(SHARED_MEMORY + "/transport_optimization/message_size_threshold",
+                          json.dumps(SHARED_MEMORY_MIN_BYTES))
     if json.loads(conf.get_json(DATA_QUEUE)) == ZENOH_DATA_QUEUE:  # unless the file set it
         conf.insert_json5(DATA_QUEUE, json.dumps(DATA_QUEUE_BATCHES))
     if json.loads(conf.get_json(SCOUTING_DELAY)) is None:
@@ -126,8 +161,13 @@ class Bus:
         self.service = settings.service
         self.mode = settings.zenoh_mode
         self.session = session if session is not None else open_session(settings)
+        if settings.shared_memory_mb and (limit := memory_lock_limit()) is not None:
+            log.debug("%s: shared memory off: locked memory is limited to %d kB here (zenoh "
+                      "locks its pools); unlimited, large messages would pass without a copy",
+                      self.service, limit >> 10)
         self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
         self.received: Counter[str] = Counter()
+        self.received_shared: Counter[str] = Counter()  # of them, through shared memory
         self.bad: Counter[str] = Counter()
         self.last_bad_reason: dict[str, str] = {}
         self.subscriptions: list[str] = []
@@ -214,6 +254,8 @@ class Bus:
 
     def _deliver(self, sample: zenoh.Sample, route: int) -> None:
         att = sample.attachment
+        if sample.payload.as_shm() is not None:
+            self.received_shared[str(sample.key_expr)] += 1
         self.inbox.put(Delivery(
             key=str(sample.key_expr), payload=sample.payload.to_bytes(),
             encoding=str(sample.encoding), attachment=None if att is None else att.to_bytes(),
@@ -293,6 +335,31 @@ class Bus:
         self._keep.clear()
         self._publishers.clear()
         self.session.close()
+
+
+def remove_orphaned_segments(directory: Path = Path("/dev/shm")) -> int:
+    """Remove the shared-memory segments of zenoh (``<number>.zenoh`` in ``directory``) that
+    no process holds any more; returns how many. Each session leaves its own behind when it
+    ends, and zenoh removes them only when the next session with shared memory opens (the
+    same test, which zenoh-python does not expose): every process that maps a segment holds
+    a shared lock on it, so an exclusive one is granted only on a segment nobody uses."""
+    removed = 0
+    for path in directory.glob("*.zenoh"):
+        if not path.stem.isdigit():
+            continue
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:  # gone meanwhile, or another user's
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            path.unlink(missing_ok=True)
+            removed += 1
+        except OSError:  # in use
+            pass
+        finally:
+            os.close(fd)
+    return removed
 
 
 def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:

@@ -49,6 +49,11 @@ class Settings(BaseModel):
         "lets go, the waiting thread wakes at every lock release numpy makes and slows the "
         "loop: a plan computed while an acknowledgement arrived took 9.4 ms instead of 6")
     connect_timeout_s: float = Field(15.0, gt=0)
+    shared_memory_mb: int = Field(
+        64, ge=0, description="zenoh shared memory, MB, each process puts its large messages "
+        "(camera clouds) in for subscribers on this host, the router included, to read without "
+        "a copy through the network stack; a subscriber on another host gets them over the "
+        "network as before. 0: off")
     health_file: Path | None = Field(
         None, description="touched every second while the service runs and reaches the "
         "router (compose's healthcheck reads its age)")
