@@ -149,14 +149,15 @@ def test_realtime_off_keeps_the_normal_policy() -> None:
 @pytest.mark.skipif(not realtime_allowed(), reason="real-time scheduling not allowed here")
 def test_the_mesh_worker_of_a_real_time_perception_runs_under_the_normal_policy() -> None:
     code = """if True:
-        import os, threading
-        from concurrent.futures import ThreadPoolExecutor
-        from wavegrasp.perception.main import mesh_worker_setup
+        import multiprocessing as mp, os, threading
+        from concurrent.futures import ProcessPoolExecutor
+        from wavegrasp.perception.main import start_mesh_worker
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))
         def policy():
             tid = threading.get_native_id()
             return os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid)
-        with ThreadPoolExecutor(1, initializer=mesh_worker_setup, initargs=("",)) as pool:
+        with ProcessPoolExecutor(1, mp.get_context("fork"), initializer=start_mesh_worker,
+                                 initargs=("",)) as pool:
             print(*pool.submit(policy).result(), *policy())
     """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -236,3 +237,25 @@ def test_wavegrasp_up_runs_real_time_only_at_the_recordings_rate(
             if "WAVEGRASP_RT_PRIORITY" in svc.environment]
     assert len(path) == 6
     assert {svc.environment["WAVEGRASP_REALTIME"] for svc in path} == {expected}
+
+
+def test_the_mesh_worker_process_ends_with_a_killed_perception(router) -> None:
+    """Meshing runs in a process of its own (not a thread: it held the interpreter lock for
+    tens of milliseconds); killed, perception leaves no worker behind."""
+    import psutil
+
+    proc = subprocess.Popen([sys.executable, "-m", "wavegrasp", "perception"],
+                            env={**os.environ, **router.env}, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while not psutil.Process(proc.pid).children() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        workers = psutil.Process(proc.pid).children()
+        assert len(workers) == 1
+        proc.kill()
+        proc.wait(10)
+        _, alive = psutil.wait_procs(workers, timeout=10)
+        assert not alive
+    finally:
+        if proc.poll() is None:
+            proc.kill()

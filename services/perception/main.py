@@ -14,9 +14,12 @@ ground truth.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
+import multiprocessing as mp
+import signal
 import sys
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 
 import numpy as np
 from pydantic import Field
@@ -93,26 +96,46 @@ def observation(header: Header, fit: ShapeFit, points_used: int,
         seabed_offset_m=None if seabed is None else float(seabed[3]), **box)
 
 
+PR_SET_PDEATHSIG = 1
+
+
 def mesh_worker_setup(cpus: str) -> None:
     """Meshing (a few hundred ms of CPU every ``mesh_period_s``) yields the cores to the
-    per-frame work: its thread runs under the normal policy, niced, and on its own CPUs when
+    per-frame work: it runs under the normal policy, niced, and on its own CPUs when
     ``cpus`` names any."""
     warning = background_thread(10, cpus, "WAVEGRASP_WORKER_CPUS")
     if warning:
         log.warning("mesh worker: %s", warning)
 
 
+def start_mesh_worker(cpus: str) -> None:
+    """The mesh worker process's start: :func:`mesh_worker_setup`, and an end with the
+    service's however that comes (a killed service leaves no worker behind)."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    mesh_worker_setup(cpus)
+
+
+def mesh_job(points: np.ndarray, weights: np.ndarray,
+             frames: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`build_mesh` on the worker: vertices, triangles and the frames they are from."""
+    return (*build_mesh(points, weights=weights), frames)
+
+
 class PerceptionService(Service):
     def __init__(self, settings: PerceptionSettings, bus: Bus | None = None) -> None:
+        # Meshing in a process of its own: in a thread it held the interpreter lock in C for
+        # up to 24 ms at a time (kd-tree pairs, the hull), and camera frames waited that long
+        # for perception to take them in. Forked now, before the bus starts its threads.
+        self._executor = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("fork"),
+                                             initializer=start_mesh_worker,
+                                             initargs=(settings.worker_cpus,))
+        self._executor.submit(int).result()
         super().__init__(settings, bus)
         self.cfg = settings
         self.perception = Perception()
         self.tf = StaticTransforms()
         self.accumulator = MeshAccumulator()
         self._mesh_job: Future | None = None
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mesh",
-                                            initializer=mesh_worker_setup,
-                                            initargs=(settings.worker_cpus,))
         self._next_mesh_frame = settings.mesh_min_frames
         self._seq = 0
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
@@ -265,8 +288,7 @@ class PerceptionService(Service):
         wait = min(acc.frames, int(10 * self.cfg.mesh_max_period_s))
         self._next_mesh_frame = acc.frames + max(int(10 * self.cfg.mesh_period_s), wait)
         points, weights, frames = acc.points_object(), acc.counts(), acc.frames
-        self._mesh_job = self._executor.submit(
-            lambda: (*build_mesh(points, weights=weights), frames))
+        self._mesh_job = self._executor.submit(mesh_job, points, weights, frames)
 
     def on_tick(self) -> None:
         job = self._mesh_job
