@@ -41,7 +41,13 @@ from wavegrasp.planner.plan import (
     stage_delays,
 )
 from wavegrasp.planner.standby import standby_move, standby_pose, standby_poses
-from wavegrasp.planner.timing import Limits, least_duration, segment, spline_path
+from wavegrasp.planner.timing import (
+    Limits,
+    least_duration,
+    sample_times,
+    segment,
+    spline_path,
+)
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
@@ -1329,3 +1335,18 @@ def test_the_jaw_starts_closing_no_sooner_than_the_object_sweeping_across_it_lea
         assert np.all(opening >= need - 1e-9)
         assert (t_close > just_in_time + 0.05) == late
         assert t_close == pytest.approx(just_in_time) or late
+
+
+def test_sampled_times_stay_apart_where_a_duration_is_a_hair_above_a_multiple_of_dt() -> None:
+    """3 x 0.1 s is 0.30000000000000004 s: the grid reached it and the end was added again,
+    two samples 0 ns apart, and the schema refused the plan."""
+    start = 1_700_000_006.3  # a recording's clock, s
+    for dt in (0.02, 0.1):
+        for k in range(1, 200):
+            for duration in (k * dt, k * dt + 1e-12, k * dt + 0.37 * dt):
+                t = sample_times(duration, dt)
+                assert t[0] == 0.0 and t[-1] == duration
+                assert np.all(np.diff(t) >= dt * 1e-3), (dt, k, duration)
+                assert np.all(np.diff(np.rint((start + t) * 1e9)) > 0)
+                grid = np.arange(0.0, duration, dt)
+                assert len(t) in (len(grid), len(grid) + 1)  # at most the end's twin is gone
