@@ -44,11 +44,12 @@ def moved(by: tuple[float, float, float], now: float):
     return replace(path, positions=path.positions + np.array(by))
 
 
-@pytest.mark.parametrize("during", ["move to P_init", "approach"])
+@pytest.mark.parametrize("during", ["wait", "move to P_init", "approach"])
 def test_an_update_moves_the_grasp_and_splices_from_the_arms_state_within_limits(
         arm: ArmModel, T_world_base: np.ndarray, approved: Plan, during: str) -> None:  # noqa: F811
     cfg = PlannerConfig()
-    now = approved.move_s[0] + 0.05 if during == "move to P_init" else approved.knots[0] + 0.05
+    now = {"wait": approved.t_start, "move to P_init": approved.move_s[0] + 0.05,
+           "approach": approved.knots[0] + 0.05}[during]
     if now + cfg.update_delay_s + cfg.splice_s > approved.t_grasp:
         pytest.skip("the approach is too short to update during it")
     shift = np.array([0.0, 0.0, 0.03])  # the object 3 cm higher than predicted at approval
@@ -68,8 +69,8 @@ def test_an_update_moves_the_grasp_and_splices_from_the_arms_state_within_limits
     for a, b in zip(state_at(approved.times, approved.q, approved.qd, take)[:2],
                     state_at(new.times, new.q, new.qd, take)[:2], strict=True):
         np.testing.assert_allclose(a, b, atol=2e-3)
-    # Within the arm's limits all the way.
-    assert np.all(np.diff(new.times) > 0)
+    # Within the arm's limits all the way; every sample a time of its own, in whole ns too.
+    assert np.all(np.diff(new.times) > cfg.sample_dt_s * 1e-3)
     assert np.all(np.abs(new.qd) <= arm.max_velocity * (1 + 1e-6))
     acc = np.diff(new.qd, axis=0) / np.diff(new.times)[:, None]
     assert np.all(np.abs(acc) <= arm.max_acceleration * 1.1)
@@ -261,3 +262,4 @@ def test_closed_loop_plans_where_only_the_forecast_of_its_last_corrections_is_tr
     blind = replace(path, sigma=np.full(len(lead), 0.10))
     assert plan_grasp(blind, NOW, arm, T_world_base, arm.q_home, BODY,
                       PlannerConfig(closed_loop=True)) == {"prediction too uncertain": 1}
+

@@ -124,7 +124,7 @@ def sample_times(duration: float, dt: float) -> np.ndarray:
     """0, ``dt``, 2 ``dt``... s before ``duration``, then ``duration`` itself; none of them
     within a thousandth of ``dt`` of it. A duration a hair above a multiple of ``dt`` (0.3 s
     as 0.30000000000000004) gave two samples a few ns apart, one time once sent in whole
-    nanoseconds, and a plan the schema refused (5 plans of the 144 runs of ``wavegrasp eval
+    nanoseconds, and a plan the schema refused (1 plan in the 144 runs of ``wavegrasp eval
     --seas regular,jonswap --executions closed,open``)."""
     local = np.arange(0.0, duration, dt)
     return np.append(local[local < duration - dt * 1e-3], duration)

@@ -81,8 +81,13 @@ def update_plan(plan: Plan, path: PredictedPath, now: float, arm: ArmModel,
     pieces = _to_p_init(plan, qs[0], t_take, limits, dt) if t_take < plan.knots[0] else None
     if pieces is not None:
         t_app = plan.times[plan.times >= plan.knots[0]]
-        times = np.concatenate([pieces[0], t_app])
-        q, qd = np.vstack([pieces[1], spline(t_app)]), np.vstack([pieces[2], spline(t_app, 1)])
+        # A move that ends as the approach starts (it waits until it must go) ends on the
+        # approach's first sample: kept twice, the times did not increase and the schema
+        # refused the update (4 updates in 2 of the 144 experiment runs).
+        to_p_init = pieces[0] < t_app[0] - dt * 1e-3
+        times = np.concatenate([pieces[0][to_p_init], t_app])
+        q = np.vstack([pieces[1][to_p_init], spline(t_app)])
+        qd = np.vstack([pieces[2][to_p_init], spline(t_app, 1)])
     else:  # in the approach, or too near its start to be at rest at P_init first
         joined = _join(plan, spline, t_take, limits, cfg.splice_s, dt)
         if joined is None:
