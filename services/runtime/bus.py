@@ -126,7 +126,12 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    shm = settings.shared_memory_mb > 0 and memory_lock_limit() is None
+    limit = memory_lock_limit() if settings.shared_memory_mb > 0 else None
+    shm = settings.shared_memory_mb > 0 and limit is None
+    if limit is not None:
+        log.debug("%s: shared memory off: locked memory is limited to %d kB here (zenoh "
+                  "locks its pools); unlimited, large messages would pass without a copy",
+                  settings.service, limit >> 10)
     conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shm))
     if shm:  # zenoh moves every message above the threshold into the pool by itself
         conf.insert_json5(SHARED_MEMORY + "/transport_optimization/pool_size",
@@ -164,10 +169,6 @@ class Bus:
         self.service = settings.service
         self.mode = settings.zenoh_mode
         self.session = session if session is not None else open_session(settings)
-        if settings.shared_memory_mb and (limit := memory_lock_limit()) is not None:
-            log.debug("%s: shared memory off: locked memory is limited to %d kB here (zenoh "
-                      "locks its pools); unlimited, large messages would pass without a copy",
-                      self.service, limit >> 10)
         self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
         self.received: Counter[str] = Counter()
         self.received_shared: Counter[str] = Counter()  # of them, through shared memory

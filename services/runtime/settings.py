@@ -53,7 +53,9 @@ class Settings(BaseModel):
         64, ge=0, description="zenoh shared memory, MB, each process puts its large messages "
         "(camera clouds) in for subscribers on this host, the router included, to read without "
         "a copy through the network stack; a subscriber on another host gets them over the "
-        "network as before. 0: off")
+        "network as before. Only where the process may lock memory without limit (root, or ulimit "
+        "-l unlimited): zenoh locks its pools, and under a limit it stalled or refused them. "
+        "0: off")
     health_file: Path | None = Field(
         None, description="touched every second while the service runs and reaches the "
         "router (compose's healthcheck reads its age)")
