@@ -239,6 +239,40 @@ def test_one_early_error_weighs_as_one_sample_among_many() -> None:
     assert tracker.sigma(np.array([0.1]))[0] < 0.02
 
 
+def test_errors_of_forecasts_sharing_a_lead_bin_are_taken_in_the_order_they_came() -> None:
+    """A 30 Hz camera puts two or three kept forecasts in each 0.1 s lead bin: each bin's
+    errors are averaged in one after the other, as a plain loop over them does."""
+    from wavegrasp.predictor.forecast import repeats
+
+    assert [r.tolist() for r in repeats(np.array([4, 2, 4, 4, 7, 2]))] == [[0, 1, 4], [2, 5],
+                                                                           [3]]
+    assert repeats(np.array([], dtype=int)) == []
+    rng = np.random.default_rng(5)
+    leads = np.arange(30) * 0.1
+    tracker = ErrorTracker(dt=0.1, n_leads=30)
+    mse, count = np.full((30, 2), np.nan), np.zeros(30, dtype=int)
+    kept: list[tuple[float, np.ndarray]] = []
+    for k in range(120):
+        t = k / 30.0
+        positions, p = rng.normal(0.0, 0.05, (30, 3)), rng.normal(0.0, 0.05, 3)
+        # Every kept forecast's error at t, bin by bin in the order they were kept.
+        for t0, spline_positions in kept:
+            x = (t - t0) / 0.1
+            if t - t0 > 2.9 - 1e-9 or x <= 1e-6:
+                continue
+            b = int(np.round(x))
+            err2 = float(np.sum((interpolate_path(leads, spline_positions, x * 0.1) - p) ** 2))
+            count[b] += 1
+            old = np.nan_to_num(mse[b])
+            mse[b] = old + np.maximum(tracker.alphas, 1.0 / count[b]) * (err2 - old)
+        tracker.observe(t, p)
+        kept.append((t, positions))
+        tracker.keep(Forecast(t, leads, positions, np.full(30, np.nan), 1.0))
+    assert (count > 2 * 120 / 30).sum() > 20  # several forecasts per bin
+    np.testing.assert_array_equal(tracker.count, count)
+    np.testing.assert_allclose(tracker.mse, mse, rtol=1e-9)
+
+
 def test_sigma_measures_the_model_once_ready_not_its_warm_up() -> None:
     model = make_predictor("blend")
     t, p = stream(40.0, seed=3)

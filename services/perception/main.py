@@ -29,7 +29,7 @@ from wavegrasp.checks import StampOrder
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
-from wavegrasp.perception.window import PixelRays
+from wavegrasp.perception.window import PixelRays, thinned
 from wavegrasp.recording_io.ros_msgs import (
     Cloud,
     CloudView,
@@ -70,6 +70,10 @@ class PerceptionSettings(Settings):
     read_windows: bool = Field(True, description="while the object is followed, read of an "
                                "organized cloud only the pixels that can hold it "
                                "(perception/window.py); false: every frame whole")
+    window_max_points: int = Field(6_000, ge=1, description="a window that would hold more "
+                                   "points (judged by the last one read) is read at every "
+                                   "s-th row and column, s the least that leaves at most "
+                                   "this many: a near object at a camera's full resolution")
 
 
 def observation(header: Header, fit: ShapeFit, points_used: int,
@@ -143,6 +147,8 @@ class PerceptionService(Service):
         self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
         self.rays: PixelRays | None = None  # an organized cloud's pixels, learnt
         self._ray_tries = 0
+        #: Of the pixels of the last window read, the share that held a point.
+        self._window_fill = 1.0
         self.bus.subscribe("tf_static", self.on_tf)
         self.bus.subscribe("trisect/points", self.on_points)
 
@@ -236,13 +242,17 @@ class PerceptionService(Service):
     def read(self, view: CloudView) -> Cloud:
         """A frame's finite points: of an organized cloud while the object is followed, only
         the window of pixels that can hold the points perception will search
-        (:mod:`~wavegrasp.perception.window`); otherwise, or where the window holds none,
-        all of them."""
+        (:mod:`~wavegrasp.perception.window`), thinned to about ``window_max_points``;
+        otherwise, or where the window holds none, all of them."""
         if not view.organized:
             return view.points()
         window = self.window(view)
         if window is not None:
-            cloud = view.points(*window)
+            rows, cols = thinned(window, int(self.cfg.window_max_points / self._window_fill))
+            cloud = view.points(rows, cols)
+            read = len(range(rows.start, rows.stop, rows.step)) * len(
+                range(cols.start, cols.stop, cols.step))
+            self._window_fill = max(len(cloud.points) / max(read, 1), 1e-3)
             if len(cloud.points):
                 self.counters["frames read in a window"] += 1
                 return cloud

@@ -91,16 +91,15 @@ class ErrorTracker:
         predicted = ((c[:, 0] * s + c[:, 1]) * s + c[:, 2]) * s + c[:, 3]
         err2 = np.sum((predicted - p) ** 2, axis=1)
         bins = np.round(x).astype(int)
-        if len(np.unique(bins)) == len(bins):  # the usual case: one error per bin, at once
-            self.count[bins] += 1
-            alpha = np.maximum(self.alphas, 1.0 / self.count[bins][:, None])
-            old = np.nan_to_num(self.mse[bins])
-            self.mse[bins] = old + alpha * (err2[:, None] - old)
-            return
-        for k, e in zip(bins, err2, strict=True):  # a bin twice: in order, as they came
-            self.count[k] += 1
-            old = np.nan_to_num(self.mse[k])
-            self.mse[k] = old + np.maximum(self.alphas, 1.0 / self.count[k]) * (e - old)
+        # Each bin's errors in order, as they came: one vectorised round per repeat of a
+        # bin (a camera faster than dt puts several forecasts in a bin; at 30 Hz a loop over
+        # them took 6 ms an observation).
+        for sel in repeats(bins):
+            b = bins[sel]
+            self.count[b] += 1
+            alpha = np.maximum(self.alphas, 1.0 / self.count[b][:, None])
+            old = np.nan_to_num(self.mse[b])
+            self.mse[b] = old + alpha * (err2[sel][:, None] - old)
 
     def keep(self, forecast: Forecast) -> None:
         """Measure ``forecast`` against the observations to come, read between its samples
@@ -147,3 +146,17 @@ class ErrorTracker:
         """How many errors were measured at ``lead`` (seconds); a bin no observation can fall
         in (see :meth:`_between`) counts as its measured neighbours do."""
         return float(self._between(self.count)[self._bins(np.array([lead]))[0]])
+
+
+def repeats(values: np.ndarray) -> list[np.ndarray]:
+    """Indices of ``values`` (k,) in rounds: the first of each distinct value, then the
+    second of those that repeat, and so on; within a round each value once, in order."""
+    if len(values) == 0:
+        return []
+    order = np.argsort(values, kind="stable")
+    ranked = values[order]
+    starts = np.flatnonzero(np.r_[True, ranked[1:] != ranked[:-1]])
+    run = np.arange(len(values)) - np.repeat(starts, np.diff(np.r_[starts, len(values)]))
+    occurrence = np.empty_like(run)
+    occurrence[order] = run
+    return [np.flatnonzero(occurrence == r) for r in range(int(occurrence.max()) + 1)]
