@@ -331,6 +331,10 @@ class ServiceStats(Message):
     received_shared: dict[str, Count] = Field(
         default_factory=dict, description="of those received, how many came through zenoh's "
         "shared memory (from a process on this host), per key")
+    pool_full: dict[str, Count] = Field(
+        default_factory=dict, description="large messages sent over the link, not through "
+        "shared memory, because this process's pool was full (receivers still held its "
+        "earlier ones), per key")
     bad: dict[str, Count] = Field(default_factory=dict)
     last_bad_reason: dict[str, str] = Field(default_factory=dict)
     counters: dict[str, Count] = Field(default_factory=dict,

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from wavegrasp.runtime.bus import memory_lock_limit, remove_orphaned_segments
 from wavegrasp.runtime.trace import CdrAttachment
@@ -150,18 +151,17 @@ def test_large_payloads_cross_through_shared_memory_unless_it_is_off(router: Rou
         receiver.subscribe("wavegrasp/test/cloud", lambda d: None)
         time.sleep(1.0)
         cloud = bytes(range(256)) * 8192  # 2 MB
-        # zenoh sets up a sender's pool at its first large message, which goes over the link
-        senders["on"].publish_cdr("wavegrasp/test/cloud", cloud, "sensor_msgs/msg/PointCloud2")
-        receiver.inbox.get(timeout=5)
-        for name, payload in [("on", cloud), ("on", b"small"), ("off", cloud)]:
+        for name, payload in [("on", cloud), ("on", cloud), ("on", b"small"), ("off", cloud)]:
             senders[name].publish_cdr("wavegrasp/test/cloud", payload,
                                       "sensor_msgs/msg/PointCloud2")
             got = receiver.inbox.get(timeout=5)
             assert got.payload == payload and receiver.dispatch(got)
-        assert receiver.received["wavegrasp/test/cloud"] == 3
-        # The large one, sent on; none where this process may not lock memory without limit.
-        expected = 1 if memory_lock_limit() is None else 0
+        assert receiver.received["wavegrasp/test/cloud"] == 4
+        # The large ones sent on, the first too; none where this process may not lock memory
+        # without limit.
+        expected = 2 if memory_lock_limit() is None else 0
         assert receiver.received_shared["wavegrasp/test/cloud"] == expected
+        assert not senders["on"].pool_full
     finally:
         for bus in [*senders.values(), receiver]:
             bus.close()
@@ -174,6 +174,36 @@ def test_large_payloads_cross_through_shared_memory_unless_it_is_off(router: Rou
                 held.callback(os.close, fd)
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 raise AssertionError(f"{path} is held by no process but was left")
+
+
+@pytest.mark.skipif(memory_lock_limit() is not None, reason="shared memory needs unlimited "
+                    "locked memory")
+def test_a_full_pool_sends_over_the_link_and_counts_it(router: Router) -> None:
+    """A receiver that holds the frames it got (one starved of CPU) fills the sender's pool:
+    the next frames go over the link, counted, and every receiver still gets every frame."""
+    sender = router.bus("camera", WAVEGRASP_SHARED_MEMORY_MB="3")
+    receiver = router.bus()
+    try:
+        receiver.subscribe("wavegrasp/test/cloud", lambda d: None)
+        holder = receiver.session.declare_subscriber("wavegrasp/test/cloud",
+                                                     zenoh.handlers.FifoChannel(64))
+        time.sleep(1.0)
+        clouds = [bytes([k]) * 1_000_000 for k in range(6)]
+        for cloud in clouds:
+            sender.publish_cdr("wavegrasp/test/cloud", cloud, "sensor_msgs/msg/PointCloud2")
+        for cloud in clouds:
+            got = receiver.inbox.get(timeout=5)
+            assert got.payload == cloud and receiver.dispatch(got)
+        held = [holder.recv() for _ in clouds]  # kept: the pool stays full meanwhile
+        assert [bytes(s.payload.to_bytes()) for s in held] == clouds
+        shared = receiver.received_shared["wavegrasp/test/cloud"]
+        assert 1 <= shared < len(clouds)
+        assert sender.pool_full["wavegrasp/test/cloud"] == len(clouds) - shared
+        holder.undeclare()
+    finally:
+        sender.close()
+        receiver.close()
+    remove_orphaned_segments()
 
 
 def test_only_segments_no_process_holds_are_removed(tmp_path: Path) -> None:

@@ -47,13 +47,15 @@ DATA_QUEUE_BATCHES = 16
 #: ``zenoh.open`` of a router on loopback). A config file that sets it keeps its own.
 SCOUTING_DELAY = "scouting/delay"
 
-#: Zenoh's shared memory between the processes of one host: with it on in the sender, the
-#: router and the receiver, zenoh's transport puts each message larger than
-#: SHARED_MEMORY_MIN_BYTES in the sender's pool and hands on a reference; a receiver that
-#: cannot map it (another host, another container's /dev/shm) gets a copy over the link.
-#: Camera clouds, not the rest (zenoh's default, 3 kB, took predictions and plans too): each
-#: process that sends one sets up a pool of its own, and a 32 MB pool took 0.35 s (74 ms of
-#: CPU) while those few kB cost microseconds to copy.
+#: Zenoh's shared memory between the processes of one host: a message of at least
+#: SHARED_MEMORY_MIN_BYTES (camera clouds) is written once into the sender's pool and the
+#: router and every receiver on this host read it there; a receiver that cannot map it
+#: (another host, another container's /dev/shm) gets a copy over the link. The bus fills the
+#: pool itself (:meth:`Bus.shared_payload`), not zenoh's transport: the transport copied
+#: each message twice on the way in (3.3 + 1.7 ms for 8 MB), and with its pool full (a
+#: receiver starved of CPU holding its frames) it held each put back about 200 ms; the
+#: bus's puts go over the link at once instead and are counted. The few kB of predictions
+#: and plans are copied (microseconds).
 SHARED_MEMORY = "transport/shared_memory"
 SHARED_MEMORY_MIN_BYTES = 64 * 1024
 
@@ -106,6 +108,19 @@ def config_file(settings: Settings) -> str | None:
     return settings.zenoh_config.replace("{service}", settings.service)
 
 
+def shared_memory_on(settings: Settings) -> bool:
+    """Whether ``settings`` ask for shared memory and this process may lock memory without
+    limit (see :func:`memory_lock_limit`)."""
+    if settings.shared_memory_mb <= 0:
+        return False
+    limit = memory_lock_limit()
+    if limit is not None:
+        log.debug("%s: shared memory off: locked memory is limited to %d kB here (zenoh "
+                  "locks its pools); unlimited, large messages would pass without a copy",
+                  settings.service, limit >> 10)
+    return limit is None
+
+
 def zenoh_config(settings: Settings) -> zenoh.Config:
     """Zenoh config: the file from ``ZENOH_CONFIG`` if any (credentials, access control, TLS),
     then our mode and explicit endpoints, multicast scouting off and shared memory as the
@@ -126,18 +141,8 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    limit = memory_lock_limit() if settings.shared_memory_mb > 0 else None
-    shm = settings.shared_memory_mb > 0 and limit is None
-    if limit is not None:
-        log.debug("%s: shared memory off: locked memory is limited to %d kB here (zenoh "
-                  "locks its pools); unlimited, large messages would pass without a copy",
-                  settings.service, limit >> 10)
-    conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shm))
-    if shm:  # zenoh moves every message above the threshold into the pool by itself
-        conf.insert_json5(SHARED_MEMORY + "/transport_optimization/pool_size",
-                          json.dumps(settings.shared_memory_mb << 20))
-        conf.insert_json5(SHARED_MEMORY + "/transport_optimization/message_size_threshold",
-                          json.dumps(SHARED_MEMORY_MIN_BYTES))
+    conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shared_memory_on(settings)))
+    conf.insert_json5(SHARED_MEMORY + "/transport_optimization/enabled", "false")
     if json.loads(conf.get_json(DATA_QUEUE)) == ZENOH_DATA_QUEUE:  # unless the file set it
         conf.insert_json5(DATA_QUEUE, json.dumps(DATA_QUEUE_BATCHES))
     if json.loads(conf.get_json(SCOUTING_DELAY)) is None:
@@ -172,6 +177,10 @@ class Bus:
         self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
         self.received: Counter[str] = Counter()
         self.received_shared: Counter[str] = Counter()  # of them, through shared memory
+        #: Large messages sent over the link because the pool was full, per key.
+        self.pool_full: Counter[str] = Counter()
+        self._pool_bytes = settings.shared_memory_mb << 20 if shared_memory_on(settings) else 0
+        self._pool: zenoh.shm.ShmProvider | None = None
         self.bad: Counter[str] = Counter()
         self.last_bad_reason: dict[str, str] = {}
         self.subscriptions: list[str] = []
@@ -207,8 +216,24 @@ class Bus:
             self._seq[key] += 1
         att = CdrAttachment(seq, time.time_ns(), publisher_gid(self.service, key), log_time_ns)
         self._publisher(key, zenoh.Encoding(f"{CDR};{msgtype}")).put(
-            bytes(cdr), attachment=att.encode())
+            self.shared_payload(key, cdr), attachment=att.encode())
         return seq
+
+    def shared_payload(self, key: str, data: bytes) -> bytes | zenoh.shm.ZShmMut:
+        """``data`` written into this process's shared-memory pool if it is large and the
+        pool has room (made on first use), else ``data`` itself (counted in
+        :attr:`pool_full` when the pool had no room: never waited for)."""
+        if not self._pool_bytes or len(data) < SHARED_MEMORY_MIN_BYTES:
+            return bytes(data)
+        if self._pool is None:
+            self._pool = zenoh.shm.ShmProvider.default_backend(self._pool_bytes)
+        try:
+            buf = self._pool.alloc(len(data), policy=zenoh.shm.GarbageCollect())
+        except zenoh.ZError:
+            self.pool_full[key] += 1
+            return bytes(data)
+        buf[:] = data
+        return buf
 
     def published(self) -> dict[str, int]:
         """CDR messages published so far, per key."""

@@ -121,7 +121,7 @@ class Service:
         self.bus.publish(stats_key(self.name), ServiceStats(
             header=new_header(self.name, self._stats_seq, self.clock.now_ns()),
             service=self.name, subscriptions=list(b.subscriptions), received=dict(b.received),
-            received_shared=dict(b.received_shared),
+            received_shared=dict(b.received_shared), pool_full=dict(b.pool_full),
             bad=dict(b.bad), last_bad_reason=dict(b.last_bad_reason), counters=dict(self.counters),
             uptime_s=time.monotonic() - self._started, cpu_s=time.process_time()))
 
