@@ -206,6 +206,25 @@ def test_a_full_pool_sends_over_the_link_and_counts_it(router: Router) -> None:
     remove_orphaned_segments()
 
 
+@pytest.mark.skipif(memory_lock_limit() is not None, reason="shared memory needs unlimited "
+                    "locked memory")
+def test_a_pool_that_cannot_be_made_leaves_large_messages_to_the_link(router: Router) -> None:
+    sender = router.bus("camera", WAVEGRASP_SHARED_MEMORY_MB=str(1 << 26))  # 64 TB
+    receiver = router.bus()
+    try:
+        receiver.subscribe("wavegrasp/test/cloud", lambda d: None)
+        time.sleep(1.0)
+        cloud = bytes(range(256)) * 4096
+        for _ in range(2):
+            sender.publish_cdr("wavegrasp/test/cloud", cloud, "sensor_msgs/msg/PointCloud2")
+            got = receiver.inbox.get(timeout=5)
+            assert got.payload == cloud and receiver.dispatch(got)
+        assert not receiver.received_shared and not sender.pool_full
+    finally:
+        sender.close()
+        receiver.close()
+
+
 def test_only_segments_no_process_holds_are_removed(tmp_path: Path) -> None:
     held, orphan, other = (tmp_path / n for n in ("11.zenoh", "12.zenoh", "notes.zenoh"))
     for path in (held, orphan, other):

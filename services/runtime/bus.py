@@ -226,7 +226,13 @@ class Bus:
         if not self._pool_bytes or len(data) < SHARED_MEMORY_MIN_BYTES:
             return bytes(data)
         if self._pool is None:
-            self._pool = zenoh.shm.ShmProvider.default_backend(self._pool_bytes)
+            try:
+                self._pool = zenoh.shm.ShmProvider.default_backend(self._pool_bytes)
+            except zenoh.ZError as exc:  # /dev/shm too small, a size zenoh refuses...
+                log.warning("%s: no %d MB shared-memory pool (%s): large messages go over "
+                            "the link", self.service, self._pool_bytes >> 20, exc)
+                self._pool_bytes = 0
+                return bytes(data)
         try:
             buf = self._pool.alloc(len(data), policy=zenoh.shm.GarbageCollect())
         except zenoh.ZError:
