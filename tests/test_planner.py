@@ -64,7 +64,7 @@ from wavegrasp.wavetank.record import arm_mount
 from wavegrasp.wavetank.scenario import MountSpec, paper_scenario
 from wavegrasp.wavetank.suite import mount_at
 
-from conftest import Router
+from conftest import Router, wait_until
 
 OMEGA = 2 * np.pi / 1.08
 BODY = Body(0.033, 0.061, np.array([0.0, 0.0, 1.0]))  # the 355 ml can, upright
@@ -1350,3 +1350,47 @@ def test_sampled_times_stay_apart_where_a_duration_is_a_hair_above_a_multiple_of
                 assert np.all(np.diff(np.rint((start + t) * 1e9)) > 0)
                 grid = np.arange(0.0, duration, dt)
                 assert len(t) in (len(grid), len(grid) + 1)  # at most the end's twin is gone
+
+
+def swaying_in_front(arm: ArmModel, stamp_s: float) -> MotionPrediction:
+    """A warm forecast, from ``stamp_s`` on, of an object swaying in front of the arm's
+    shoulder (base frame = world), as the planner's self-check plans on."""
+    t = stamp_s + np.arange(41) * 0.1
+    sway = np.column_stack([0.05 * np.sin(2 * np.pi * t / 1.2), 0.02 * np.sin(2 * np.pi * t / 1.2),
+                            0.02 * np.cos(2 * np.pi * t / 1.2)])
+    centre = arm.shoulder + arm.reach_m * np.array([0.55, 0.0, -0.1])
+    return MotionPrediction(
+        header=new_header("predictor", int(stamp_s * 10), int(round(stamp_s * 1e9))),
+        model="test", period_s=1.2, warm=True,
+        samples=[PredictionSample(t_ns=int(round(ti * 1e9)), x=p[0], y=p[1], z=p[2], sigma=0.002)
+                 for ti, p in zip(t, centre + sway, strict=True)])
+
+
+@pytest.mark.parametrize("pace", ["realtime", "lockstep"])
+def test_in_real_time_the_planner_takes_at_most_its_share_of_the_time(router: Router,
+                                                                       pace: str) -> None:
+    """After a plan that took t, the next prediction waits t / max_share - t (the newest
+    kept meanwhile); in lockstep every prediction is planned on as it comes."""
+    service = PlannerService(PlannerSettings.from_env(
+        "planner", env={**router.env, "WAVEGRASP_PACE": pace, "WAVEGRASP_MAX_SHARE": "0.2"}))
+    try:
+        service.tf.update([("world", service.arm.base_link, np.eye(4))])
+        d = Delivery("p", b"", "", None, 0, 0)
+        service.on_prediction(swaying_in_front(service.arm, 1.0), d)
+        started = time.monotonic()
+        service.on_tick()
+        took = time.monotonic() - started
+        assert service.counters["plans"] == 1
+        service.on_prediction(swaying_in_front(service.arm, 1.1), d)
+        service.on_prediction(swaying_in_front(service.arm, 1.2), d)  # the newest wins
+        service.on_tick()
+        if pace == "realtime":
+            assert service._pending is not None and service._pending[0].header.seq == 12
+            assert wait_until(lambda: (service.on_tick(), service._pending is None)[1],
+                              timeout=60 * took + 5, period=0.001)
+            assert time.monotonic() - started >= took / 0.2 - 0.001
+        else:
+            assert service._pending is None
+        assert service.counters["plans"] == 2 and service.counters["skipped: superseded"] == 1
+    finally:
+        service.bus.close()

@@ -8,7 +8,9 @@ is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``)
 plan's grasp is tried first on the next prediction (:class:`~wavegrasp.planner.plan.Hint`),
 until a grasp fails. While the predictor warms up, its forecasts are planned on only to
 move the arm to its standby and find the grasp to try first. The arm model is ours unless
-``WAVEGRASP_ARM_URDF`` names the vehicle's own description.
+``WAVEGRASP_ARM_URDF`` names the vehicle's own description. In real time it plans at most
+``max_share`` of the wall time, the newest prediction waiting meanwhile, so a search that
+runs long cannot hold the stages before it off a core.
 """
 
 from __future__ import annotations
@@ -78,6 +80,15 @@ class PlannerSettings(Settings):
                                    "again after this much recording time, if the object's sway "
                                    "or size has changed since by more than standby_moved_m")
     standby_moved_m: float = Field(0.02, ge=0.0, description="see standby_every_s")
+    pace: Literal["realtime", "fast", "lockstep"] = Field(
+        "realtime", description="the player's (WAVEGRASP_PACE): max_share holds in real time")
+    max_share: float = Field(0.5, gt=0.0, le=1.0, description="in real time, of the wall "
+                             "time at most this share planning: after a plan or update that "
+                             "took t s the next starts no sooner than t / max_share - t s "
+                             "later, the newest prediction kept meanwhile. On the top "
+                             "real-time priority a planner searching on every prediction "
+                             "(every plan late, none approved) held the stages before it and "
+                             "the recorder off a core, and a 30 Hz run never caught up")
 
 
 def to_message(plan: Plan, pred: MotionPrediction, recv_ns: int, arm: ArmModel,
@@ -169,6 +180,7 @@ class PlannerService(Service):
                            MotionPrediction)
         self._t_grasp: dict[str, int] = {}
         self._pending: tuple[MotionPrediction, Delivery] | None = None
+        self._rest_until = 0.0  # monotonic s: no planning before (max_share, real time)
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
@@ -324,9 +336,11 @@ class PlannerService(Service):
         self.on_tick()  # plan on the frame's prediction before acknowledging the frame
 
     def on_tick(self) -> None:
-        if self._pending is not None:
+        realtime = self.cfg.pace == "realtime"
+        if self._pending is not None and not (realtime and time.monotonic() < self._rest_until):
             msg, d = self._pending
             self._pending = None
+            started = time.monotonic()
             try:
                 self.plan(msg, d)
             except ValueError as exc:
@@ -335,6 +349,9 @@ class PlannerService(Service):
                 log.exception("planning failed on prediction %d", msg.header.seq)
                 self.bus.count_bad("wavegrasp/predictor/prediction",
                                    f"{type(exc).__name__}: {exc}"[:300])
+            if realtime:
+                now = time.monotonic()
+                self._rest_until = now + (now - started) * (1.0 / self.cfg.max_share - 1.0)
 
     def plan(self, msg: MotionPrediction, d: Delivery) -> None:
         if self._executing is not None and msg.header.stamp_ns * 1e-9 > (
