@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wavegrasp.perception.evaluate import evaluate
+from wavegrasp.perception.evaluate import evaluate, run_perception
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.main import PerceptionService, PerceptionSettings
 from wavegrasp.perception.pipeline import joined, learnt_box
@@ -329,6 +329,12 @@ def test_organized_clouds_read_in_windows_give_the_observations_of_whole_frames(
     gaps = [np.linalg.norm([a["centroid"][k] - b["centroid"][k] for k in "xyz"])
             for a, b in pairs]
     assert np.median(gaps) < 0.002, np.median(gaps)
+    # The offline evaluation reads the frames as the service does (its default settings).
+    service_default, _ = observations(messages, frames)
+    track = run_perception(path)
+    offline = [None if np.isnan(c[0]) else [float(v) for v in c] for c in track.centres]
+    assert offline == [None if o["centroid"] is None else [o["centroid"][k] for k in "xyz"]
+                       for o in service_default]
 
 
 def test_a_thinned_window_keeps_every_sth_row_and_column_within_its_pixel_budget() -> None:

@@ -1,6 +1,8 @@
 """Perception against ground truth: ``python -m wavegrasp.perception.evaluate REC [REC ...]``.
 
-Runs the pipeline over every camera frame of each recording, offline (no bus), and compares
+Runs the pipeline over every camera frame of each recording, offline (no bus), read as the
+service reads them (an organized cloud in windows, thinned: ``--whole``,
+``--window-max-points``), and compares
 each centroid with the ground truth at the frame's stamp (the generator writes both at the same
 instant). Prints per recording: frames observed, centroid RMSE and mean bias (per axis), and
 per-frame processing time (median, p99).
@@ -17,8 +19,9 @@ import numpy as np
 
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.pipeline import Perception, PerceptionConfig
+from wavegrasp.perception.window import WindowReader
 from wavegrasp.recording_io.reader import open_recording
-from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_points, decode_pose, decode_tf
+from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose, decode_tf, view_points
 
 
 @dataclass
@@ -78,9 +81,12 @@ class Track:
     last_span: tuple[float, float] | None = None
 
 
-def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
-    """Run the pipeline over every camera frame of ``path``, timing each frame."""
+def run_perception(path: Path, cfg: PerceptionConfig | None = None,
+                   reader: WindowReader | None = None) -> Track:
+    """Run the pipeline over every camera frame of ``path`` read as the service reads them
+    (``reader``, default :class:`WindowReader`'s), timing each frame."""
     perception = Perception(cfg)
+    reader = reader or WindowReader()
     tf = StaticTransforms()
     truth: dict[int, np.ndarray] = {}
     stamps, centres, sigmas, times, sizes = [], [], [], [], []
@@ -93,9 +99,11 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
             truth[stamp] = T[:3, 3]
         else:
             start = time.perf_counter()
-            cloud = decode_points(m.cdr)
-            result = perception.process(cloud.points, tf.lookup("world", cloud.frame_id),
-                                        cloud.stamp_ns)
+            view = view_points(m.cdr)
+            T = tf.lookup("world", view.frame_id)
+            region = perception.search_region(view.stamp_ns) if view.organized else None
+            cloud, _ = reader.read(view, region, T)
+            result = perception.process(cloud.points, T, cloud.stamp_ns)
             times.append((time.perf_counter() - start) * 1e3)
             sizes.append(len(cloud.points))
             stamps.append(cloud.stamp_ns)
@@ -110,9 +118,10 @@ def run_perception(path: Path, cfg: PerceptionConfig | None = None) -> Track:
                  last_span)
 
 
-def evaluate(path: Path, cfg: PerceptionConfig | None = None) -> Evaluation:
+def evaluate(path: Path, cfg: PerceptionConfig | None = None,
+             reader: WindowReader | None = None) -> Evaluation:
     """Centroid errors against the ground truth at each frame's stamp."""
-    track = run_perception(path, cfg)
+    track = run_perception(path, cfg, reader)
     truth = dict(zip(track.truth_ns.tolist(), track.truth, strict=True))
     seen = ~np.isnan(track.centres[:, 0])
     errors = [c - truth[s] for s, c in zip(track.stamps_ns[seen].tolist(), track.centres[seen],
@@ -125,10 +134,15 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recordings", nargs="+", type=Path)
+    p.add_argument("--whole", action="store_true", help="read organized clouds whole, not "
+                   "in windows as the service does")
+    p.add_argument("--window-max-points", type=int, default=3000,
+                   help="an organized window's points at most (WAVEGRASP_WINDOW_MAX_POINTS)")
     a = p.parse_args(argv)
     print(HEADER)
     for path in a.recordings:
-        print(evaluate(path).row(), flush=True)
+        reader = WindowReader(not a.whole, a.window_max_points)
+        print(evaluate(path, reader=reader).row(), flush=True)
     return 0
 
 

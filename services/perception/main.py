@@ -29,7 +29,7 @@ from wavegrasp.checks import StampOrder
 from wavegrasp.perception.fit import ShapeFit
 from wavegrasp.perception.mesh import MeshAccumulator, build_mesh, mesh_volume
 from wavegrasp.perception.pipeline import FrameResult, Perception
-from wavegrasp.perception.window import PixelRays, thinned
+from wavegrasp.perception.window import WindowReader
 from wavegrasp.recording_io.ros_msgs import (
     Cloud,
     CloudView,
@@ -51,8 +51,6 @@ OBJECT_KEY = "wavegrasp/perception/object"
 #: The points taken as the object's, in ``world`` (a PointCloud2, CDR: what viewers show).
 POINTS_KEY = "wavegrasp/perception/points"
 MESH_KEY = "wavegrasp/perception/mesh"
-#: Frames read whole to learn an organized cloud's pixel rays from before giving up.
-RAY_TRIES = 10
 
 
 class PerceptionSettings(Settings):
@@ -145,10 +143,7 @@ class PerceptionService(Service):
         self._order = StampOrder(restart_s=1.0)  # a replay begun again restarts the stream
         self._waiting: Delivery | None = None  # a frame whose transform has not come yet
         self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
-        self.rays: PixelRays | None = None  # an organized cloud's pixels, learnt
-        self._ray_tries = 0
-        #: Of the pixels of the last window read, the share that held a point.
-        self._window_fill = 1.0
+        self.reader = WindowReader(settings.read_windows, settings.window_max_points)
         self.bus.subscribe("tf_static", self.on_tf)
         self.bus.subscribe("trisect/points", self.on_points)
 
@@ -240,43 +235,17 @@ class PerceptionService(Service):
         return False
 
     def read(self, view: CloudView) -> Cloud:
-        """A frame's finite points: of an organized cloud while the object is followed, only
-        the window of pixels that can hold the points perception will search
-        (:mod:`~wavegrasp.perception.window`), thinned to about ``window_max_points``;
-        otherwise, or where the window holds none, all of them."""
+        """A frame's finite points as perception needs them (:class:`WindowReader`)."""
         if not view.organized:
             return view.points()
-        window = self.window(view)
-        if window is not None:
-            rows, cols = thinned(window, int(self.cfg.window_max_points / self._window_fill))
-            cloud = view.points(rows, cols)
-            read = len(range(rows.start, rows.stop, rows.step)) * len(
-                range(cols.start, cols.stop, cols.step))
-            self._window_fill = max(len(cloud.points) / max(read, 1), 1e-3)
-            if len(cloud.points):
-                self.counters["frames read in a window"] += 1
-                return cloud
-        cloud = view.points()
-        if self.rays is None and self._ray_tries < RAY_TRIES:
-            self._ray_tries += 1
-            self.rays = PixelRays.learn(view.xyz)
-            if self.rays is None and self._ray_tries == RAY_TRIES:
-                log.warning("the organized cloud's points do not lie on their pixels' rays: "
-                            "every frame is read whole")
-        return cloud
-
-    def window(self, view: CloudView) -> tuple[slice, slice] | None:
-        """The rows and columns of ``view`` to read, or None: read it all."""
-        rays = self.rays if self.cfg.read_windows else None
-        region = self.perception.search_region(view.stamp_ns)
-        if rays is None or region is None or view.xyz.shape[:2] != (rays.height, rays.width):
-            return None
         try:
             T = self.tf.lookup("world", view.frame_id)
         except ValueError:
-            return None
-        predicted, radius = region
-        return rays.window((predicted - T[:3, 3]) @ T[:3, :3], radius)
+            T = None
+        cloud, windowed = self.reader.read(view, self.perception.search_region(view.stamp_ns), T)
+        if windowed:
+            self.counters["frames read in a window"] += 1
+        return cloud
 
     def publish_missing(self, header: Header, reason: str) -> None:
         self.counters[f"missing: {reason.split(':')[0]}"] += 1

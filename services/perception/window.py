@@ -12,16 +12,23 @@ following reads the window and finds what it would have found in the whole cloud
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from wavegrasp.recording_io.ros_msgs import Cloud, CloudView
+
+log = logging.getLogger("wavegrasp.perception")
 
 #: A cloud whose points lie further than this from the lines, pixels, is not organized by
 #: its rays (it is not read in windows).
 MAX_RESIDUAL_PX = 2.0
 #: Points needed to learn the lines from.
 MIN_POINTS = 100
+#: Frames read whole to learn an organized cloud's pixel rays from before giving up.
+RAY_TRIES = 10
 
 
 @dataclass(frozen=True)
@@ -95,3 +102,54 @@ def thinned(window: tuple[slice, slice], max_pixels: int) -> tuple[slice, slice]
             (cols.stop - cols.start) / stride) > max_pixels:
         stride += 1
     return slice(rows.start, rows.stop, stride), slice(cols.start, cols.stop, stride)
+
+
+class WindowReader:
+    """Reads camera frames as perception needs them: a dense cloud whole; an organized one,
+    once its pixel rays are learnt (from a whole frame) and while the object is followed,
+    only the window of pixels that can hold the points perception will search, thinned to
+    about ``max_points`` (:func:`thinned`, judged by the share of the last window's pixels
+    that held a point); otherwise, or where the window holds none, whole.
+    ``read_windows`` False: every frame whole."""
+
+    def __init__(self, read_windows: bool = True, max_points: int = 3000) -> None:
+        if max_points < 1:
+            raise ValueError(f"max_points must be at least 1, got {max_points}")
+        self.read_windows, self.max_points = read_windows, max_points
+        self.rays: PixelRays | None = None
+        self.tries = 0
+        self.fill = 1.0  # of the pixels of the last window read, the share holding a point
+
+    def read(self, view: CloudView, region: tuple[np.ndarray, float] | None,
+             T_world_cam: np.ndarray | None) -> tuple[Cloud, bool]:
+        """The frame's finite points, and whether they were read in a window. ``region``:
+        where perception will search (centre (3,), metres, world; radius, metres) or None;
+        ``T_world_cam`` (4, 4): the camera's pose, or None if not known yet."""
+        window = self.window(view, region, T_world_cam) if view.organized else None
+        if window is not None:
+            rows, cols = thinned(window, int(self.max_points / self.fill))
+            cloud = view.points(rows, cols)
+            pixels = len(range(rows.start, rows.stop, rows.step)) * len(
+                range(cols.start, cols.stop, cols.step))
+            self.fill = max(len(cloud.points) / max(pixels, 1), 1e-3)
+            if len(cloud.points):
+                return cloud, True
+        cloud = view.points()
+        if view.organized and self.rays is None and self.tries < RAY_TRIES:
+            self.tries += 1
+            self.rays = PixelRays.learn(view.xyz)
+            if self.rays is None and self.tries == RAY_TRIES:
+                log.warning("the organized cloud's points do not lie on their pixels' rays: "
+                            "every frame is read whole")
+        return cloud, False
+
+    def window(self, view: CloudView, region: tuple[np.ndarray, float] | None,
+               T_world_cam: np.ndarray | None) -> tuple[slice, slice] | None:
+        """The rows and columns of ``view`` to read (step 1), or None: read it all."""
+        rays = self.rays if self.read_windows else None
+        if rays is None or region is None or T_world_cam is None or (
+                view.xyz.shape[:2] != (rays.height, rays.width)):
+            return None
+        predicted, radius = region
+        T = T_world_cam
+        return rays.window((predicted - T[:3, 3]) @ T[:3, :3], radius)
