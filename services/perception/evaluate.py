@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("recordings", nargs="+", type=Path)
     p.add_argument("--whole", action="store_true", help="read organized clouds whole, not "
                    "in windows as the service does")
-    p.add_argument("--window-max-points", type=int, default=3000,
+    p.add_argument("--window-max-points", type=int, default=10_000,
                    help="an organized window's points at most (WAVEGRASP_WINDOW_MAX_POINTS)")
     a = p.parse_args(argv)
     print(HEADER)

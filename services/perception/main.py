@@ -68,7 +68,7 @@ class PerceptionSettings(Settings):
     read_windows: bool = Field(True, description="while the object is followed, read of an "
                                "organized cloud only the pixels that can hold it "
                                "(perception/window.py); false: every frame whole")
-    window_max_points: int = Field(3_000, ge=1, description="a window that would hold more "
+    window_max_points: int = Field(10_000, ge=1, description="a window that would hold more "
                                    "points (judged by the last one read) is read at every "
                                    "s-th row and column, s the least that leaves at most "
                                    "this many: a near object at a camera's full resolution")

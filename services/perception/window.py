@@ -112,7 +112,7 @@ class WindowReader:
     that held a point); otherwise, or where the window holds none, whole.
     ``read_windows`` False: every frame whole."""
 
-    def __init__(self, read_windows: bool = True, max_points: int = 3000) -> None:
+    def __init__(self, read_windows: bool = True, max_points: int = 10_000) -> None:
         if max_points < 1:
             raise ValueError(f"max_points must be at least 1, got {max_points}")
         self.read_windows, self.max_points = read_windows, max_points
