@@ -90,9 +90,9 @@ def _span(a: float, z: float, r: float, f: float, c: float, margin: float, size:
 def thinned(window: tuple[slice, slice], max_pixels: int) -> tuple[slice, slice]:
     """``window`` (rows, columns, step 1) at the smallest stride s, every s-th row and
     column, that leaves at most ``max_pixels`` pixels: a full-resolution stereo camera sees
-    a near object in more points than a centroid needs (measured at 672 x 376: a window of
-    25 000 pixels, 11 200 points, perception 9.0 ms a frame; every second row and column
-    2 800 points, 4.1 ms, the centroid 0.33 mm from the truth against 0.27, median)."""
+    a near object in more points than a centroid needs (``python -m
+    wavegrasp.perception.evaluate`` at 672 x 376: the window 11 189 points, 8.4 ms a frame;
+    every second row and column 2 791 points, 5.2 ms, centroid RMSE 0.52 mm against 0.30)."""
     if max_pixels < 1:
         raise ValueError(f"max_pixels must be at least 1, got {max_pixels}")
     rows, cols = window
@@ -151,5 +151,4 @@ class WindowReader:
                 view.xyz.shape[:2] != (rays.height, rays.width)):
             return None
         predicted, radius = region
-        T = T_world_cam
-        return rays.window((predicted - T[:3, 3]) @ T[:3, :3], radius)
+        return rays.window((predicted - T_world_cam[:3, 3]) @ T_world_cam[:3, :3], radius)
