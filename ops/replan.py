@@ -52,8 +52,9 @@ def run_mcap(run: Path) -> Path:
 
 def replan(path: Path, endpoint: str, each: bool = False) -> Counter:
     """The planner's counters over the run in ``path`` (a run.mcap), replayed."""
-    service = PlannerService(PlannerSettings.from_env("planner",
-                                                      env={"ZENOH_CONNECT": endpoint}))
+    # Replayed as fast as it goes: every prediction planned on as it comes, as in lockstep.
+    service = PlannerService(PlannerSettings.from_env(
+        "planner", env={"ZENOH_CONNECT": endpoint, "WAVEGRASP_PACE": "lockstep"}))
     handlers = {OBJECT_KEY: (service.on_observation, ObjectObservation),
                 ARM_STATE_KEY: (service.on_arm_state, ArmState),
                 DECISION_KEY: (service.on_decision, GateDecision),
