@@ -290,7 +290,14 @@ class PerceptionService(Service):
         self.counters["meshes"] += 1
 
     def on_stop(self) -> None:
+        # A mesh still being built is not waited for: at exit multiprocessing joins its
+        # children, and a stopped perception waited on its busy worker past the launcher's
+        # 10 s and was killed (a CI run on a loaded machine). The executor has no public way
+        # to end a running worker before Python 3.14 (kill_workers); shutdown forgets them.
+        workers = list((getattr(self._executor, "_processes", None) or {}).values())
         self._executor.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.kill()
 
 
 def main(argv: list[str] | None = None) -> int:
