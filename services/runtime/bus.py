@@ -121,10 +121,11 @@ def shared_memory_on(settings: Settings) -> bool:
     return limit is None
 
 
-def zenoh_config(settings: Settings) -> zenoh.Config:
+def zenoh_config(settings: Settings, shared_memory: bool | None = None) -> zenoh.Config:
     """Zenoh config: the file from ``ZENOH_CONFIG`` if any (credentials, access control, TLS),
-    then our mode and explicit endpoints, multicast scouting off and shared memory as the
-    settings say on top, and no wait for scouting in ``open`` unless the file asks for one.
+    then our mode and explicit endpoints, multicast scouting off and shared memory on top
+    (``shared_memory``; None: as :func:`shared_memory_on` says), and no wait for scouting in
+    ``open`` unless the file asks for one.
 
     Raises
     ------
@@ -141,7 +142,9 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shared_memory_on(settings)))
+    if shared_memory is None:
+        shared_memory = shared_memory_on(settings)
+    conf.insert_json5(SHARED_MEMORY + "/enabled", json.dumps(shared_memory))
     conf.insert_json5(SHARED_MEMORY + "/transport_optimization/enabled", "false")
     if json.loads(conf.get_json(DATA_QUEUE)) == ZENOH_DATA_QUEUE:  # unless the file set it
         conf.insert_json5(DATA_QUEUE, json.dumps(DATA_QUEUE_BATCHES))
@@ -150,12 +153,14 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     return conf
 
 
-def open_session(settings: Settings) -> zenoh.Session:
-    """Open a session, retrying until ``connect_timeout_s`` while the router comes up."""
+def open_session(settings: Settings, shared_memory: bool | None = None) -> zenoh.Session:
+    """Open a session, retrying until ``connect_timeout_s`` while the router comes up;
+    ``shared_memory``: as :func:`zenoh_config`'s (None: as the settings and this process's
+    locked-memory limit allow)."""
     deadline = time.monotonic() + settings.connect_timeout_s
     while True:
         try:
-            return zenoh.open(zenoh_config(settings))
+            return zenoh.open(zenoh_config(settings, shared_memory))
         except zenoh.ZError as exc:
             if settings.zenoh_mode == "router" or time.monotonic() > deadline:
                 where = settings.zenoh_listen if settings.zenoh_mode == "router" else (
@@ -173,13 +178,15 @@ class Bus:
     def __init__(self, settings: Settings, session: zenoh.Session | None = None) -> None:
         self.service = settings.service
         self.mode = settings.zenoh_mode
-        self.session = session if session is not None else open_session(settings)
+        shared_memory = shared_memory_on(settings)  # once: it reads /proc and may log
+        self.session = session if session is not None else open_session(settings,
+                                                                         shared_memory)
         self.inbox: queue.SimpleQueue[Delivery] = queue.SimpleQueue()
         self.received: Counter[str] = Counter()
         self.received_shared: Counter[str] = Counter()  # of them, through shared memory
         #: Large messages sent over the link because the pool was full, per key.
         self.pool_full: Counter[str] = Counter()
-        self._pool_bytes = settings.shared_memory_mb << 20 if shared_memory_on(settings) else 0
+        self._pool_bytes = settings.shared_memory_mb << 20 if shared_memory else 0
         self._pool: zenoh.shm.ShmProvider | None = None
         self.bad: Counter[str] = Counter()
         self.last_bad_reason: dict[str, str] = {}
