@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wavegrasp.recording_io.own_messages import decode_own, own_topics
 from wavegrasp.recording_io.reader import RecordingError, TruncatedRecording, read_mcap
 from wavegrasp.runtime.trace import hop_times_ms
 from wavegrasp.schemas import Hop
@@ -32,7 +33,7 @@ OBSERVATION_KEY = "wavegrasp/perception/object"
 PREDICTION_KEY = "wavegrasp/predictor/prediction"
 PLAN_KEY = "wavegrasp/planner/plan"
 POINTS_TOPIC = "/trisect/points"
-TOPICS = (POINTS_TOPIC, CHAIN_KEY, OBSERVATION_KEY, PREDICTION_KEY, PLAN_KEY)
+TOPICS = (POINTS_TOPIC, *own_topics([CHAIN_KEY, OBSERVATION_KEY, PREDICTION_KEY, PLAN_KEY]))
 NS_PER_MS = 1e6
 
 
@@ -93,13 +94,13 @@ def read_latency(path: Path) -> Latency:
     plans: dict[str, dict] = {}
     topic, cut = "", ""
     try:
-        for _schema, channel, message in read_mcap(path, TOPICS):
-            topic = channel.topic
-            if topic == POINTS_TOPIC:
+        for schema, channel, message in read_mcap(path, TOPICS):
+            topic = channel.topic.lstrip("/")
+            if channel.topic == POINTS_TOPIC:
                 point_seqs.add(message.sequence)
                 point_stamps.append((message.sequence, message.log_time))
-            elif channel.message_encoding == "json":
-                msg = json.loads(message.data)
+            elif (own := decode_own(schema, channel, message)) is not None:
+                msg = own.model_dump()
                 if topic == OBSERVATION_KEY:
                     observed.add(msg["header"]["seq"])
                     _add_since_capture(lat.to_observation, msg)

@@ -19,22 +19,15 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from mcap.reader import make_reader
-
 from wavegrasp.gate.main import DECISION_KEY
 from wavegrasp.ops.bench_zenoh_hop import start_router, stop
 from wavegrasp.perception.main import OBJECT_KEY
 from wavegrasp.planner.main import PlannerService, PlannerSettings
 from wavegrasp.predictor.main import PREDICTION_KEY
+from wavegrasp.recording_io.mcap_read import read_mcap
+from wavegrasp.recording_io.own_messages import decode_own, own_topics
 from wavegrasp.recording_io.ros_msgs import decode_tf
 from wavegrasp.runtime.bus import Delivery
-from wavegrasp.schemas import (
-    ArmState,
-    GateDecision,
-    GraspOutcome,
-    MotionPrediction,
-    ObjectObservation,
-)
 from wavegrasp.sim.main import ARM_STATE_KEY, OUTCOME_KEY
 
 TF_STATIC_TOPIC = "/tf_static"
@@ -55,39 +48,39 @@ def replan(path: Path, endpoint: str, each: bool = False) -> Counter:
     # Replayed as fast as it goes: every prediction planned on as it comes, as in lockstep.
     service = PlannerService(PlannerSettings.from_env(
         "planner", env={"ZENOH_CONNECT": endpoint, "WAVEGRASP_PACE": "lockstep"}))
-    handlers = {OBJECT_KEY: (service.on_observation, ObjectObservation),
-                ARM_STATE_KEY: (service.on_arm_state, ArmState),
-                DECISION_KEY: (service.on_decision, GateDecision),
-                OUTCOME_KEY: (service.on_outcome, GraspOutcome),
-                PREDICTION_KEY: (service.on_prediction, MotionPrediction)}
+    handlers = {OBJECT_KEY: service.on_observation, ARM_STATE_KEY: service.on_arm_state,
+                DECISION_KEY: service.on_decision, OUTCOME_KEY: service.on_outcome,
+                PREDICTION_KEY: service.on_prediction}
     t0: int | None = None
     try:
-        with path.open("rb") as f:
-            for _, channel, message in make_reader(f).iter_messages(
-                    topics=[*handlers, TF_STATIC_TOPIC], log_time_order=True):
-                t0 = message.log_time if t0 is None else t0
-                if channel.topic == TF_STATIC_TOPIC:
-                    service.tf.update(decode_tf(message.data))
-                    continue
-                handle, model = handlers[channel.topic]
-                delivery = Delivery(channel.topic, message.data, "", None, message.log_time, 0)
-                try:
-                    msg = model.model_validate_json(message.data)
-                except ValueError as exc:
-                    service.bus.count_bad(channel.topic, str(exc)[:300])
-                    continue
-                try:
-                    handle(msg, delivery)
-                except ValueError as exc:  # as the service's own subscriptions count it
-                    service.bus.count_bad(channel.topic, str(exc)[:300])
-                    continue
-                if channel.topic != PREDICTION_KEY:
-                    continue
-                before = Counter({k: service.counters[k] for k in OUTCOMES})
-                service.on_tick()
-                if each and (done := [k for k in OUTCOMES if service.counters[k] > before[k]]):
-                    print(f"  {(message.log_time - t0) * 1e-9:7.2f} s  prediction "
-                          f"{msg.header.seq}: {done[0]}")
+        for schema, channel, message in read_mcap(path, [*own_topics(handlers),
+                                                         TF_STATIC_TOPIC]):
+            t0 = message.log_time if t0 is None else t0
+            if channel.topic == TF_STATIC_TOPIC:
+                service.tf.update(decode_tf(message.data))
+                continue
+            key = channel.topic.lstrip("/")
+            handle = handlers[key]
+            delivery = Delivery(key, message.data, "", None, message.log_time, 0)
+            try:
+                msg = decode_own(schema, channel, message)
+                if msg is None:
+                    raise ValueError(f"{channel.topic}: not one of our messages")
+            except ValueError as exc:
+                service.bus.count_bad(key, str(exc)[:300])
+                continue
+            try:
+                handle(msg, delivery)
+            except ValueError as exc:  # as the service's own subscriptions count it
+                service.bus.count_bad(key, str(exc)[:300])
+                continue
+            if key != PREDICTION_KEY:
+                continue
+            before = Counter({k: service.counters[k] for k in OUTCOMES})
+            service.on_tick()
+            if each and (done := [k for k in OUTCOMES if service.counters[k] > before[k]]):
+                print(f"  {(message.log_time - t0) * 1e-9:7.2f} s  prediction "
+                      f"{msg.header.seq}: {done[0]}")
         return Counter(service.counters)
     finally:
         service.bus.close()

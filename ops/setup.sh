@@ -13,4 +13,12 @@ fi
 [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --upgrade pip
 "$VENV/bin/python" -m pip install -q -e ".[dev]"
+# The tests check our CDR with an independent decoder (Foxglove's TypeScript one) under node.
+if ! command -v npm >/dev/null; then
+  SUDO=$([ "$(id -u)" = 0 ] && echo "" || echo sudo)
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq nodejs npm >/dev/null
+fi
+[ -d tests/ros2_decode/node_modules/@foxglove/rosmsg2-serialization ] ||
+  npm ci --prefix tests/ros2_decode --no-audit --no-fund --silent
 echo "wavegrasp is set up in $VENV" >&2

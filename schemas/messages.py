@@ -241,6 +241,12 @@ class GateDecision(Message):
     threshold_m: float
     window_s: float
     reason: str = ""
+    failed: list[str] = Field(default_factory=list,
+                              description="the checks that said no (empty when go)")
+    matches: Count = Field(0, description="predictions matched against observations in the "
+                           "window")
+    latency_s: float | None = Field(None, ge=0.0, description="the plan's age when decided, "
+                                    "recording seconds: its data's capture to now")
 
 
 FailureKind = Literal["prediction", "collision", "timing", "abrupt_change", "unreachable", "other"]

@@ -15,6 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 from wavegrasp.ops.launcher import free_port
+from wavegrasp.recording_io.own_messages import read_own
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.runtime.bus import Bus
 from wavegrasp.runtime.settings import Settings
@@ -97,6 +98,11 @@ def recorded(run_mcap: Path) -> tuple[dict[str, list[bytes]], dict[str, tuple[st
             assert schema is not None and schema.data, f"{channel.topic} has no schema"
             schemas[channel.topic] = (schema.name, schema.encoding)
     return payloads, schemas
+
+
+def own_messages(run_mcap: Path, key: str) -> list[dict]:
+    """Our messages on ``key`` in a run file, as dicts (ROS 2 channels, or JSON ones)."""
+    return [msg.model_dump() for _, msg, _ in read_own(run_mcap, [key])]
 
 
 def source_frames(recording: Path) -> list[bytes]:

@@ -45,6 +45,8 @@ from wavegrasp.schemas import (
 )
 from wavegrasp.schemas.mesh_codec import encode_mesh
 from wavegrasp.schemas.messages import INT64_MAX, MAX_COORDINATE_M
+from wavegrasp.schemas.ros import msgtype as ros_msgtype
+from wavegrasp.schemas.ros import to_cdr
 
 SEED = 1729
 HUGE_CLOUD = 2_000_001  # one point over the default WAVEGRASP_MAX_CLOUD_POINTS
@@ -79,6 +81,12 @@ def json_case(kind: str, obj: Any, schema: str, reason: str | None) -> Case:
 
 
 def message_case(kind: str, msg: BaseModel, reason: str | None = None) -> Case:
+    """``msg`` as the services send it: CDR of its ``wavegrasp_msgs`` type."""
+    return Case(kind, to_cdr(msg), f"{CDR};{ros_msgtype(type(msg).__name__)}", reason)
+
+
+def json_message_case(kind: str, msg: BaseModel, reason: str | None = None) -> Case:
+    """``msg`` as JSON of its model (what a tool may publish)."""
     return Case(kind, msg.model_dump_json().encode(), f"{JSON};{type(msg).__name__}", reason)
 
 
@@ -130,16 +138,21 @@ def json_cases(key: str, example: BaseModel, rng: np.random.Generator) -> list[C
     cases.append(Case("truncated JSON", json.dumps(valid).encode()[:-9], f"{JSON};{name}",
                       at + r"payload: Invalid JSON"))
     cases.append(Case("binary encoding", json.dumps(valid).encode(), "application/octet-stream",
-                      r"encoding 'application/octet-stream', expected application/json" if
-                      contract else r"no message type known for this key"))
+                      r"encoding 'application/octet-stream', expected application/cdr or "
+                      r"application/json" if contract else r"no message type known for this key"))
     for kind, obj in (("a list", [1, 2]), ("a number", 42), ("a string", "text"),
                       ("null", None), ("a bool", True)):
         cases.append(json_case(f"JSON {kind}", obj, name, at + r"payload: Input should be an "
                                r"object|" + at + r"payload: Input should be a valid dictionary"))
     other = FrameAck if model is not FrameAck else Clock
     if contract:  # elsewhere any type may come
-        cases.append(message_case(f"another type's JSON ({other.__name__})", EXAMPLES[other](),
-                                  f"encoding names schema {other.__name__}, expected {name}"))
+        cases.append(json_message_case(
+            f"another type's JSON ({other.__name__})", EXAMPLES[other](),
+            f"encoding names schema {other.__name__}, expected {name}"))
+        cases.append(message_case(
+            f"another type's CDR ({other.__name__})", EXAMPLES[other](),
+            f"encoding names schema {re.escape(ros_msgtype(other.__name__))}, expected "
+            f"{re.escape(ros_msgtype(name))}"))
     cases.append(json_case("an empty object", {}, name, at + r"\w+: Field required"))
     for field, info in model.model_fields.items():
         if info.is_required() and field in valid:
@@ -210,6 +223,30 @@ def cdr_cases(key: str, msgtype: str, valid: bytes, rng: np.random.Generator) ->
               for n in (12, len(valid) // 2, len(valid) - 1)]
     cases.append(Case("JSON on a CDR key", b'{"header": {}}', JSON,
                       f"{bad}|{re.escape(key)}: no message type known"))
+    return cases
+
+
+def own_cdr_cases(key: str, example: BaseModel, rng: np.random.Generator) -> list[Case]:
+    """Malformed CDR of one of our messages (``example``'s type): garbage and truncations
+    (:func:`cdr_cases`), and well-formed CDR whose values the model refuses: a negative
+    sequence number, a NaN where a float must be finite."""
+    model, name = type(example), type(example).__name__
+    msgtype = ros_msgtype(name)
+    at = f"^{re.escape(key)}: {name}\\."
+    valid = to_cdr(example)
+    cases = [c for c in cdr_cases(key, msgtype, valid, rng) if c.encoding != JSON]
+    ros = store().deserialize_cdr(valid, msgtype)
+    ros.trace.seq = -1
+    cases.append(Case("a negative seq", bytes(store().serialize_cdr(ros, msgtype)),
+                      f"{CDR};{msgtype}", at + r"header\.seq: Input should be greater than"))
+    floats = [f for f, info in model.model_fields.items()
+              if info.annotation is float and isinstance(getattr(example, f), float)]
+    if floats:
+        ros = store().deserialize_cdr(valid, msgtype)
+        setattr(ros, floats[0], math.nan)
+        cases.append(Case(f"NaN in {floats[0]}", bytes(store().serialize_cdr(ros, msgtype)),
+                          f"{CDR};{msgtype}", at + re.escape(floats[0]) + r": Input should be "
+                          r"a finite number"))
     return cases
 
 

@@ -37,6 +37,7 @@ from fuzz_cases import (
     header,
     json_cases,
     message_case,
+    own_cdr_cases,
     rng_for,
     tf_semantic_cases,
 )
@@ -300,5 +301,6 @@ class Scenario:
         if key in ROS_KEYS:
             fuzz = cdr_cases(key, ROS_KEYS[key], self.cdr_basis(key), rng)
         else:  # a key outside the contract: what its sender's encoding names
-            fuzz = json_cases(key, EXAMPLES[model or FrameAck](), rng)
+            example = EXAMPLES[model or FrameAck]()
+            fuzz = [*json_cases(key, example, rng), *own_cdr_cases(key, example, rng)]
         return [*fuzz, *self.semantic(key), *self.odd(key)]

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from mcap.writer import Writer
 
 from wavegrasp.ops.latency import format_table, main, merge, read_latency
+from wavegrasp.recording_io.typestore import ros2_msgdef
 from wavegrasp.runtime.trace import check_trace
 from wavegrasp.schemas import GateDecision, Header, Hop, ObjectObservation
+from wavegrasp.schemas.ros import msgtype, to_cdr
 
 MS = 1_000_000
 
@@ -26,9 +29,10 @@ def chain(t0: int, perception_ms: float, planner_ms: float) -> list[Hop]:
 
 
 def write_run(path: Path, observed: list[int], decisions: list[list[Hop]],
-              clouds: list[int] = ()) -> None:
+              clouds: list[int] = (), json: bool = False) -> None:
     """A run file: observations of frames ``observed``, the ``decisions``' traces, and the
-    camera clouds of frames ``clouds`` (their bytes do not matter here), 100 ms apart."""
+    camera clouds of frames ``clouds`` (their bytes do not matter here), 100 ms apart. Our
+    messages as a run records them (ROS 2 channels), or ``json`` as runs before did."""
     with path.open("wb") as f:
         w = Writer(f)
         w.start(profile="", library="test")
@@ -36,20 +40,28 @@ def write_run(path: Path, observed: list[int], decisions: list[list[Hop]],
         points = w.register_channel("/trisect/points", "cdr", schema)
         for seq in clouds:
             w.add_message(points, seq * 100 * MS, b"", seq * 100 * MS, sequence=seq)
-        obs = w.register_channel("wavegrasp/perception/object", "json", schema)
-        dec = w.register_channel("wavegrasp/gate/decision", "json", schema)
+
+        def channel(key: str, model: type) -> tuple[int, Callable]:
+            if json:
+                return (w.register_channel(key, "json", w.register_schema(
+                    model.__name__, "jsonschema", b"{}")), lambda m: m.model_dump_json().encode())
+            name = msgtype(model.__name__)
+            return (w.register_channel("/" + key, "cdr", w.register_schema(
+                name, "ros2msg", ros2_msgdef(name).encode())), to_cdr)
+        obs, encode_obs = channel("wavegrasp/perception/object", ObjectObservation)
+        dec, encode_dec = channel("wavegrasp/gate/decision", GateDecision)
         for seq in observed:  # the first without a trace (a camera that sends no publish time)
             trace = [] if seq == observed[0] else [
                 Hop(service="source", recv_ns=seq * 100 * MS, sent_ns=seq * 100 * MS),
                 Hop(service="perception", recv_ns=seq * 100 * MS + MS,
                     sent_ns=seq * 100 * MS + 5 * MS)]
             msg = ObjectObservation(header=Header(seq=seq, stamp_ns=seq * 100 * MS, trace=trace))
-            w.add_message(obs, seq, msg.model_dump_json().encode(), seq)
+            w.add_message(obs, seq, encode_obs(msg), seq)
         for k, trace in enumerate(decisions):
             msg = GateDecision(header=Header(seq=k, stamp_ns=k * 100 * MS, trace=trace),
                                plan_id=f"p{k}", go=False, mean_error_m=None, threshold_m=0.01,
                                window_s=2.0)
-            w.add_message(dec, 1000 + k, msg.model_dump_json().encode(), 1000 + k)
+            w.add_message(dec, 1000 + k, encode_dec(msg), 1000 + k)
         w.finish()
 
 
@@ -76,8 +88,9 @@ def test_hops_and_end_to_end_from_decision_traces(tmp_path: Path) -> None:
 def test_several_runs_are_taken_together(tmp_path: Path, capsys) -> None:
     a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
     write_run(a, observed=[0, 1, 2], decisions=[chain(10**18, 5.0, 4.0)])
+    # b recorded as runs were before our messages became ROS 2 types: JSON channels.
     write_run(b, observed=[0, 2], decisions=[chain(10**18, 7.0, 12.0),
-                                             chain(10**18 + 100 * MS, 6.0, 8.0)])
+                                             chain(10**18 + 100 * MS, 6.0, 8.0)], json=True)
     lat = merge([read_latency(a), read_latency(b)])
     assert lat.end_to_end == pytest.approx([13.7, 23.7, 18.7])
     assert (lat.frames_published, lat.frames_observed, lat.frames_dropped) == (6, 5, 1)

@@ -9,13 +9,12 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
 
 from wavegrasp.wavetank.record import generate
 from wavegrasp.wavetank.scenario import paper_scenario
 from wavegrasp.wavetank.suite import mount_at
 
-from conftest import wavegrasp_cmd
+from conftest import own_messages, wavegrasp_cmd
 
 #: (name, object, bearing from the object in degrees (0: the way the waves run), the
 #: shoulder's rise above the object, the mount's turn away from facing it in degrees, the
@@ -45,12 +44,8 @@ def test_an_arm_mounted_elsewhere_grasps(tmp_path: Path, name: str, obj: str, be
     result = subprocess.run(env_cmd, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:]
     summary = json.loads((out / "summary.json").read_text())
-    with (out / "run.mcap").open("rb") as f:
-        outcomes = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(
-            topics=["wavegrasp/sim/outcome"])]
-        f.seek(0)
-        plans = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(
-            topics=["wavegrasp/planner/plan"])]
+    outcomes = own_messages(out / "run.mcap", "wavegrasp/sim/outcome")
+    plans = own_messages(out / "run.mcap", "wavegrasp/planner/plan")
     assert plans, f"no plan: {summary.get('counters', {}).get('planner')}"
     # The arm waits facing the object, not where its mount points; one that starts facing
     # away is moved there before its first plan.

@@ -8,7 +8,6 @@ holds the recording's own object, and the pipeline grasps each.
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -17,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from wavegrasp.ops.bench_perception import FAMILIES, family_scenario
 from wavegrasp.perception.evaluate import evaluate, run_perception
@@ -33,7 +31,7 @@ from wavegrasp.wavetank.camera import object_mesh
 from wavegrasp.wavetank.record import generate
 from wavegrasp.wavetank.scenario import ObjectModel, Scenario
 
-from conftest import wavegrasp_cmd
+from conftest import own_messages, wavegrasp_cmd
 
 BOTTLE = {"family": "bottle", "diameter_m": 0.065, "length_m": 0.2, "neck_diameter_m": 0.027,
           "neck_length_m": 0.04, "mass_kg": 0.12}
@@ -196,12 +194,9 @@ def test_each_family_is_grasped_end_to_end(tmp_path: Path, label: str) -> None:
     result = subprocess.run(wavegrasp_cmd("up", str(rec), "--pace", "lockstep", "--out",
                                           str(out)), capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:]
-    with (out / "run.mcap").open("rb") as f:
-        outcomes = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(
-            topics=["wavegrasp/sim/outcome"])]
-        f.seek(0)
-        shapes = {json.loads(m.data)["shape"] for _, _, m in make_reader(f).iter_messages(
-            topics=["wavegrasp/perception/object"]) if json.loads(m.data)["centroid"]}
+    outcomes = own_messages(out / "run.mcap", "wavegrasp/sim/outcome")
+    shapes = {m["shape"] for m in own_messages(out / "run.mcap", "wavegrasp/perception/object")
+              if m["centroid"]}
     assert shapes == {"box" if obj["family"] == "box" else "revolution"}
     assert any(o["success"] for o in outcomes), outcomes
 

@@ -2,28 +2,26 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from wavegrasp.perception.mesh import mesh_volume
 from wavegrasp.planner.evaluate import approved_grasp_errors
+from wavegrasp.recording_io.mcap_read import read_mcap
+from wavegrasp.recording_io.own_messages import decode_own
 from wavegrasp.runtime.trace import check_trace
-from wavegrasp.schemas import Hop
 from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.wavetank.body import OBJECTS
 from wavegrasp.wavetank.record import RecordConfig, generate
 
-from conftest import wavegrasp_cmd
+from conftest import own_messages, wavegrasp_cmd
 
 
 def read(out: Path, topic: str) -> list[dict]:
-    with (out / "run.mcap").open("rb") as f:
-        return [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=[topic])]
+    return own_messages(out / "run.mcap", topic)
 
 
 def test_up_perceives_predicts_plans_and_decides(tmp_path: Path) -> None:
@@ -108,21 +106,21 @@ def check_traces(run: Path) -> None:
     """Every message's trace is complete and monotonic; what derives from a camera frame
     starts at the player's publish time, and a decision holds the whole chain."""
     types: dict[str, int] = {}
-    with run.open("rb") as f:
-        for _, channel, m in make_reader(f).iter_messages():
-            if channel.message_encoding != "json":
-                continue
-            header = json.loads(m.data).get("header")
-            assert header is not None, channel.topic
-            trace = [Hop(**h) for h in header["trace"]]
-            assert trace, channel.topic
-            check_trace(trace)  # raises naming the hop
-            services = [h.service for h in trace]
-            if channel.topic.endswith(("/ack", "/object", "/prediction", "/plan", "/decision")):
-                assert services[0] == "source", (channel.topic, services)
-            if channel.topic == "wavegrasp/gate/decision":
-                assert services == ["source", "perception", "predictor", "planner", "gate"]
-            types[channel.topic] = types.get(channel.topic, 0) + 1
+    for schema, channel, m in read_mcap(run):
+        msg = decode_own(schema, channel, m)
+        if msg is None:
+            continue
+        header = getattr(msg, "header", None)
+        assert header is not None, channel.topic
+        trace = header.trace
+        assert trace, channel.topic
+        check_trace(trace)  # raises naming the hop
+        services = [h.service for h in trace]
+        if channel.topic.endswith(("/ack", "/object", "/prediction", "/plan", "/decision")):
+            assert services[0] == "source", (channel.topic, services)
+        if channel.topic == "/wavegrasp/gate/decision":
+            assert services == ["source", "perception", "predictor", "planner", "gate"]
+        types[channel.topic] = types.get(channel.topic, 0) + 1
     assert len(types) >= 20, types  # clock, status, stats, acks and every service's output
 
 

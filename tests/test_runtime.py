@@ -19,7 +19,7 @@ from wavegrasp.player.main import PlayerSettings
 from wavegrasp.recorder.main import Recorder, RecorderSettings
 from wavegrasp.recorder.rerun_log import RerunLog
 from wavegrasp.recording_io.reader import open_recording
-from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
+from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery, decode_model
 from wavegrasp.runtime.clock import RecordingClock
 from wavegrasp.runtime.heartbeat import Heartbeat
 from wavegrasp.runtime.service import STOP_SIGNALS, Service
@@ -101,7 +101,7 @@ def recorder_acks(bus: Bus, count: int) -> list[int]:
     while len(acks) < count:
         d = bus.inbox.get(timeout=5.0)
         if d.key == "wavegrasp/recorder/ack":
-            acks.append(FrameAck.model_validate_json(d.payload).frame_seq)
+            acks.append(decode_model(d, FrameAck).frame_seq)
     return acks
 
 

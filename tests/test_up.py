@@ -9,13 +9,15 @@ import sys
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
 
 from wavegrasp.ops.forked import forkable
 from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
 from wavegrasp.runtime.bus import memory_lock_limit
 
-from conftest import recorded, source_frames, wavegrasp_cmd
+from conftest import own_messages, recorded, source_frames, wavegrasp_cmd
 
 
 def run_up(recording: Path, out: Path, pace: str = "fast", timeout: float = 120,
@@ -34,7 +36,7 @@ def check_run(recording: Path, out: Path, result: subprocess.CompletedProcess) -
     assert schemas["/trisect/points"] == ("sensor_msgs/msg/PointCloud2", "ros2msg")
     assert schemas["/tf_static"] == ("tf2_msgs/msg/TFMessage", "ros2msg")
     assert schemas["/groundtruth/object"] == ("geometry_msgs/msg/PoseStamped", "ros2msg")
-    assert schemas["wavegrasp/clock"] == ("Clock", "jsonschema")
+    assert schemas["/wavegrasp/clock"] == ("wavegrasp_msgs/msg/Clock", "ros2msg")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "finished" and not summary["crashed"]
     assert summary["player"]["frames"] == 50
@@ -55,13 +57,34 @@ def test_up_fast_records_every_frame_bit_identical(recording: Path, tmp_path: Pa
     replay = open_recording(out / "run.mcap")
     assert set(replay.topics) == {"/trisect/points", "/tf_static", "/groundtruth/object"}
     assert replay.metadata.get("seed") == "7"
+    check_ros2_readable(out / "run.mcap")
+    # ... and does: the run replayed through the services again.
+    again = tmp_path / "again"
+    check_run(recording, again, run_up(out / "run.mcap", again))
+
+
+def check_ros2_readable(run_mcap: Path) -> None:
+    """rosbags' AnyReader, the usual Python bag reader, opens the run and decodes every
+    message on every channel from the definitions in the file."""
+    with run_mcap.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    in_file = {c.topic: summary.statistics.channel_message_counts[c.id]
+               for c in summary.channels.values()}
+    with AnyReader([run_mcap]) as reader:
+        decoded: dict[str, int] = {}
+        for connection, _, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            assert msg.__msgtype__ == connection.msgtype
+            decoded[connection.topic] = decoded.get(connection.topic, 0) + 1
+    assert decoded == in_file
+    assert {"/wavegrasp/perception/object", "/wavegrasp/predictor/prediction",
+            "/wavegrasp/sim/arm_state", "/wavegrasp/clock", "/trisect/points"} <= set(decoded)
 
 
 def test_up_lockstep_acknowledges_each_frame(recording: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
     check_run(recording, out, run_up(recording, out, pace="lockstep"))
-    payloads, _ = recorded(out / "run.mcap")
-    acks = [json.loads(p)["frame_seq"] for p in payloads["wavegrasp/recorder/ack"]]
+    acks = [m["frame_seq"] for m in own_messages(out / "run.mcap", "wavegrasp/recorder/ack")]
     assert acks == list(range(50))
 
 
@@ -71,9 +94,8 @@ def test_services_forked_or_started_as_commands_repeat_the_same_lockstep_run(
     ``--no-fork`` starts each as a command, as compose does: the same observations and
     predictions either way (their traces' wall times aside)."""
     def contents(out: Path) -> dict[str, list[dict]]:
-        payloads, _ = recorded(out / "run.mcap")
         keys = ("wavegrasp/perception/object", "wavegrasp/predictor/prediction")
-        got = {key: [json.loads(p) for p in payloads[key]] for key in keys}
+        got = {key: own_messages(out / "run.mcap", key) for key in keys}
         for messages in got.values():
             for m in messages:
                 del m["header"]["trace"]

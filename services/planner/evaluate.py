@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
 
 from wavegrasp.arm import ArmModel
 from wavegrasp.perception.evaluate import Track
@@ -18,7 +16,10 @@ from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_pose
 from wavegrasp.predictor.models import make_predictor
+from wavegrasp.recording_io.mcap_read import read_mcap
+from wavegrasp.recording_io.own_messages import decode_own, own_topics
 from wavegrasp.recording_io.ros_msgs import decode_pose
+from wavegrasp.schemas import GateDecision, GraspPlan
 
 
 @dataclass
@@ -83,18 +84,18 @@ def score(track: Track, T_world_base: np.ndarray, body: Body, warmup_s: float = 
 def approved_grasp_errors(run_mcap: Path) -> np.ndarray:
     """|grasp position − true centroid at t_grasp| (m) for every plan the gate approved."""
     plans, approved, truth = {}, set(), {}
-    with Path(run_mcap).open("rb") as f:
-        for _, channel, msg in make_reader(f).iter_messages(log_time_order=False, topics=[
-                "wavegrasp/planner/plan", "wavegrasp/gate/decision", "/groundtruth/object"]):
-            if channel.topic == "/groundtruth/object":
-                T, _, stamp = decode_pose(msg.data)
-                truth[stamp] = T[:3, 3]
-            elif channel.topic.endswith("plan"):
-                d = json.loads(msg.data)
-                p = d["grasp"]["position"]
-                plans[d["plan_id"]] = (d["t_grasp_ns"], np.array([p["x"], p["y"], p["z"]]))
-            elif json.loads(msg.data)["go"]:
-                approved.add(json.loads(msg.data)["plan_id"])
+    for schema, channel, msg in read_mcap(run_mcap, [
+            *own_topics(["wavegrasp/planner/plan", "wavegrasp/gate/decision"]),
+            "/groundtruth/object"]):
+        if channel.topic == "/groundtruth/object":
+            T, _, stamp = decode_pose(msg.data)
+            truth[stamp] = T[:3, 3]
+        elif isinstance(own := decode_own(schema, channel, msg), GraspPlan):
+            plans[own.plan_id] = (own.t_grasp_ns, np.array([own.grasp.position.x,
+                                                            own.grasp.position.y,
+                                                            own.grasp.position.z]))
+        elif isinstance(own, GateDecision) and own.go:
+            approved.add(own.plan_id)
     stamps = np.array(sorted(truth))
     positions = np.array([truth[s] for s in stamps])
     errors = []

@@ -1,8 +1,9 @@
 """``wavegrasp recorder``: subscribes to everything and writes ``OUT/run.mcap`` and
 ``OUT/run.rrd``.
 
-CDR keys become ROS 2 channels (topic ``/a/b`` for key ``a/b``, ``ros2msg`` schema), so a run is
-itself a recording the player can replay; JSON keys become ``json`` channels with the model's
+CDR keys, ours (``wavegrasp_msgs``) as well as the camera's, become ROS 2 channels (topic
+``/a/b`` for key ``a/b``, ``ros2msg`` schema), so a run is itself a recording the player can
+replay and ROS 2 tools read; JSON a tool publishes becomes a ``json`` channel with the model's
 JSON Schema. log_time is on the recording's clock (the CDR attachment's log time, else the
 latest ``wavegrasp/clock``), so the run lines up with its input. The file is flushed every
 ``flush_period_s``: a killed recorder loses at most that much. After each camera frame is
@@ -68,6 +69,8 @@ from wavegrasp.schemas import (
     model_for_key,
 )
 from wavegrasp.schemas.export import schema_text
+from wavegrasp.schemas.ros import PACKAGE
+from wavegrasp.schemas.ros import msgtype as ros_msgtype
 
 if TYPE_CHECKING:
     from wavegrasp.recorder.rerun_log import RerunLog
@@ -133,7 +136,7 @@ def free_run_path(out: Path) -> Path:
 
 
 class Recorder(Service):
-    subscribes_clock = False  # its own subscription brings the ticks: see _record_json
+    subscribes_clock = False  # its own subscription brings the ticks: see _record_own
 
     def __init__(self, settings: RecorderSettings, bus: Bus | None = None) -> None:
         super().__init__(settings, bus)
@@ -193,10 +196,11 @@ class Recorder(Service):
     def on_message(self, d: Delivery) -> None:
         kind = d.encoding.split(";")[0]
         msg = None
-        if kind == CDR or (d.key in ROS_KEYS and kind != JSON):
+        own = model_for_key(d.key) is not None or (d.schema or "").startswith(f"{PACKAGE}/")
+        if (kind == CDR and not own) or (d.key in ROS_KEYS and kind != JSON):
             written = self._record_cdr(d)
         else:
-            msg = self._record_json(d)
+            msg = self._record_own(d)
             written = not self.skips(d.key)
         if self.rerun is not None and written:
             try:
@@ -270,12 +274,14 @@ class Recorder(Service):
             skip = self._skip[key] = any(e.includes(key) for e in self.excluded)
         return skip
 
-    def _record_json(self, d: Delivery) -> BaseModel | None:
+    def _record_own(self, d: Delivery) -> BaseModel | None:
+        """Write one of our messages: CDR as a ROS 2 channel (``/`` + key, ``ros2msg``
+        schema), JSON (a tool's or an older sender's) as a JSON one (key, ``jsonschema``)."""
         if self.skips(d.key):
             return None
 
         # A contract key carries its own type: a payload naming another is refused.
-        model = model_for_key(d.key) or MESSAGE_TYPES.get(d.schema or "")
+        model = model_for_key(d.key) or MESSAGE_TYPES.get((d.schema or "").rpartition("/")[2])
         if model is None:
             raise BadMessage(f"{d.key}: no message type known for this key "
                              f"(encoding {d.encoding!r})")
@@ -291,8 +297,13 @@ class Recorder(Service):
             self.clock.on_clock(msg)
         log_time = msg.header.stamp_ns if isinstance(msg, Clock) else self.clock.now_ns()
         publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
-        channel = self._channel(d.key, "json", model.__name__, "jsonschema",
-                                lambda: schema_text(model.__name__))
+        if d.encoding.startswith(CDR):
+            msgtype = ros_msgtype(model.__name__)
+            channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg",
+                                    lambda: ros2_msgdef(msgtype))
+        else:
+            channel = self._channel(d.key, "json", model.__name__, "jsonschema",
+                                    lambda: schema_text(model.__name__))
         self.writer.add_message(channel, log_time, d.payload, publish_time)
         self.written += 1
         return msg

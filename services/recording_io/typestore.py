@@ -1,7 +1,8 @@
 """The rosbags type stores used to serialize, convert and describe recorded messages.
 
-ROS 2 messages are CDR against ROS 2 Humble's definitions; ROS 1 bags use ROS 1 Noetic's
-definitions (whose `std_msgs/Header` carries a `seq` field that CDR drops), completed by Humble's.
+ROS 2 messages are CDR against ROS 2 Humble's definitions (and ours, ``wavegrasp_msgs``);
+ROS 1 bags use ROS 1 Noetic's definitions (whose `std_msgs/Header` carries a `seq` field that
+CDR drops), completed by Humble's.
 """
 
 from __future__ import annotations
@@ -11,11 +12,13 @@ from functools import cache
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
+from wavegrasp.schemas.ros import typestore
 
-@cache
+
 def ros2_typestore() -> Typestore:
-    """Return the shared ROS 2 Humble type store (CDR, ros2msg definitions)."""
-    return get_typestore(Stores.ROS2_HUMBLE)
+    """Return the shared ROS 2 Humble type store (CDR, ros2msg definitions), our own
+    ``wavegrasp_msgs`` types registered in it."""
+    return typestore()
 
 
 @cache

@@ -1,4 +1,5 @@
-"""A typed bus over Eclipse Zenoh: pydantic messages as JSON, ROS messages as raw CDR.
+"""A typed bus over Eclipse Zenoh: pydantic messages as CDR of their ROS 2 types
+(``wavegrasp_msgs``, :mod:`wavegrasp.schemas.ros`), ROS messages as raw CDR.
 
 Zenoh delivers samples on the thread that receives them from the link; the bus only copies
 each one into the service's inbox there, and :meth:`Bus.dispatch` decodes and handles it on the
@@ -29,6 +30,8 @@ from pydantic import BaseModel, ValidationError
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, publisher_gid, stamp_sent
 from wavegrasp.schemas import health_key
+from wavegrasp.schemas.ros import from_cdr, to_cdr
+from wavegrasp.schemas.ros import msgtype as ros_msgtype
 
 log = logging.getLogger(__name__)
 
@@ -209,12 +212,13 @@ class Bus:
         return pub
 
     def publish(self, key: str, msg: BaseModel) -> None:
-        """Publish ``msg`` as JSON on ``key``, stamping this service's hop as sent."""
+        """Publish ``msg`` on ``key`` as CDR of its ``wavegrasp_msgs`` type (encoding
+        ``application/cdr;wavegrasp_msgs/msg/NAME``), stamping this service's hop as sent."""
         header = getattr(msg, "header", None)
         if header is not None:
             stamp_sent(header, self.service)
-        encoding = zenoh.Encoding(f"{JSON};{type(msg).__name__}")
-        self._publisher(key, encoding).put(msg.model_dump_json().encode())
+        encoding = zenoh.Encoding(f"{CDR};{ros_msgtype(type(msg).__name__)}")
+        self._publisher(key, encoding).put(to_cdr(msg))
 
     def publish_cdr(self, key: str, cdr: bytes, msgtype: str, log_time_ns: int = 0) -> int:
         """Publish CDR bytes unchanged on ``key`` with an attachment; returns its sequence."""
@@ -405,15 +409,24 @@ def remove_orphaned_segments(directory: Path = Path("/dev/shm")) -> int:
 
 
 def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:
-    """Decode a JSON payload as ``model``; raises :class:`BadMessage` naming key and problem."""
-    if delivery.encoding.split(";")[0] not in (JSON, "text/json", "zenoh/bytes"):
-        raise BadMessage(f"{delivery.key}: encoding {delivery.encoding!r}, expected {JSON}")
-    if delivery.schema is not None and delivery.schema != model.__name__:
+    """Decode a payload as ``model``: CDR of its ``wavegrasp_msgs`` type, or JSON of the model
+    (what a tool or an older sender may publish); raises :class:`BadMessage` naming key and
+    problem."""
+    kind = delivery.encoding.split(";")[0]
+    expected = ros_msgtype(model.__name__) if kind == CDR else model.__name__
+    if kind not in (CDR, JSON, "text/json", "zenoh/bytes"):
+        raise BadMessage(f"{delivery.key}: encoding {delivery.encoding!r}, expected {CDR} or "
+                         f"{JSON}")
+    if delivery.schema is not None and delivery.schema != expected:
         raise BadMessage(f"{delivery.key}: encoding names schema {delivery.schema}, expected "
-                         f"{model.__name__}")
+                         f"{expected}")
     try:
+        if kind == CDR:
+            return from_cdr(delivery.payload, model)
         return model.model_validate_json(delivery.payload)
-    except ValidationError as exc:
+    except ValueError as exc:
+        if not isinstance(exc, ValidationError):
+            raise BadMessage(f"{delivery.key}: {exc}") from None
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "payload"
         raise BadMessage(f"{delivery.key}: {model.__name__}.{where}: {err['msg']}") from None

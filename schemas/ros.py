@@ -1,0 +1,307 @@
+"""Every message of ours as a ROS 2 interface type (package ``wavegrasp_msgs``) and as CDR.
+
+The pydantic models are the one source: :func:`definitions` derives each ``.msg`` from its
+model (``schemas/msg/NAME.msg`` holds them for colcon; ``python -m wavegrasp.schemas.export``
+writes them, and a test fails while they differ), and :func:`to_cdr` / :func:`from_cdr`
+convert between a model and its CDR bytes with rosbags' serializer. Mapping, field by field:
+
+- ``header`` (:class:`Header`) -> ``std_msgs/Header header`` (its ``stamp`` from ``stamp_ns``,
+  ``frame_id``) and ``wavegrasp_msgs/Trace trace`` (``seq`` and the ``hops``): ROS tools find
+  the stamp and frame where they look for them.
+- :class:`Vec3` -> ``geometry_msgs/Point``, :class:`Quaternion` and :class:`Pose` -> their
+  ``geometry_msgs`` namesakes; other nested models -> ``wavegrasp_msgs/<Model>``.
+- ``int`` -> ``int64``, ``float`` -> ``float64``, ``bool``, ``str`` and ``Literal`` -> ``string``;
+  ``list[X]`` -> ``X[]``; an optional ``X | None`` -> ``X[<=1]`` (empty: None).
+- ``dict[str, float]`` -> ``FloatEntry[]``, ``dict[str, int]`` -> ``CountEntry[]``,
+  ``dict[str, str]`` -> ``diagnostic_msgs/KeyValue[]``, ``dict[str, float | str | bool]`` ->
+  ``ValueEntry[]``: key and value, in the dict's order.
+
+Fields a sender adds beyond its model (``extra="allow"``) do not travel in CDR.
+"""
+
+from __future__ import annotations
+
+import inspect
+import types
+import typing
+from collections.abc import Callable
+from functools import cache
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from wavegrasp.schemas import MESSAGE_TYPES, Header, Hop, Pose, Quaternion, Vec3
+
+PACKAGE = "wavegrasp_msgs"
+#: Models that are ROS 2 standard types, field for field.
+STANDARD = {Vec3: "geometry_msgs/msg/Point", Quaternion: "geometry_msgs/msg/Quaternion",
+            Pose: "geometry_msgs/msg/Pose"}
+#: The entries a dict travels as, by its value type.
+ENTRY_TEXT = {
+    "FloatEntry": "string key\nfloat64 value\n",
+    "CountEntry": "string key\nint64 value\n",
+    "ValueEntry": "# A value that is a number, a text or a flag: kind says which field holds it.\n"
+                  "uint8 NUMBER=0\nuint8 TEXT=1\nuint8 FLAG=2\n"
+                  "string key\nuint8 kind\nfloat64 number\nstring text\nbool flag\n",
+    "Trace": "# The message's sequence number and every service it went through.\n"
+             "int64 seq\nHop[] hops\n",
+}
+NUMBER, TEXT, FLAG = 0, 1, 2
+DTYPES = {float: np.float64, int: np.int64, bool: np.bool_}
+
+
+def msgtype(name: str) -> str:
+    """``wavegrasp_msgs/msg/<name>``: the ROS 2 type of model or entry ``name``."""
+    return f"{PACKAGE}/msg/{name}"
+
+
+def _plain(annotation: Any) -> Any:
+    """``annotation`` without ``Annotated``'s constraints (``Count`` is an int)."""
+    if typing.get_origin(annotation) is typing.Annotated:
+        return typing.get_args(annotation)[0]
+    return annotation
+
+
+def _optional(annotation: Any) -> Any | None:
+    """X for ``X | None``, else None."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = typing.get_args(annotation)
+        if len(args) == 2 and type(None) in args:
+            return _plain(next(a for a in args if a is not type(None)))
+    return None
+
+
+def _item(annotation: Any, k: int) -> Any:
+    """The k-th type argument of a list or dict annotation, plain."""
+    return _plain(typing.get_args(annotation)[k])
+
+
+def _entry(value: Any) -> str:
+    """The entry type a dict with values of type ``value`` travels as."""
+    if value is float:
+        return "FloatEntry"
+    if value is int:
+        return "CountEntry"
+    if value is str:
+        return "diagnostic_msgs/KeyValue"
+    if set(typing.get_args(value)) == {float, str, bool}:
+        return "ValueEntry"
+    raise TypeError(f"no ROS 2 entry type for dict values of {value!r}")
+
+
+def _ros_type(annotation: Any) -> str:
+    """The .msg type (without array suffix) of a scalar or model annotation."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return STANDARD.get(annotation, annotation.__name__).replace("/msg/", "/")
+    if typing.get_origin(annotation) is Literal or annotation is str:
+        return "string"
+    return {int: "int64", float: "float64", bool: "bool"}[annotation]
+
+
+def _field_line(name: str, annotation: Any) -> str:
+    inner = _optional(annotation)
+    if inner is not None:
+        return f"{_ros_type(inner)}[<=1] {name}"
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        return f"{_ros_type(_item(annotation, 0))}[] {name}"
+    if origin is dict:
+        return f"{_entry(_item(annotation, 1))}[] {name}"
+    return f"{_ros_type(_plain(annotation))} {name}"
+
+
+def msg_text(model: type[BaseModel]) -> str:
+    """The ``.msg`` definition of ``model``, its field descriptions as comments."""
+    lines = [f"# {line}".rstrip() for line in inspect.cleandoc(model.__doc__ or "").splitlines()]
+    for name, field in model.model_fields.items():
+        if field.annotation is Header:
+            lines += ["std_msgs/Header header", "Trace trace"]
+            continue
+        if field.description:
+            lines.append(f"# {field.description}")
+        lines.append(_field_line(name, field.annotation))
+    return "\n".join(lines) + "\n"
+
+
+def _nested(model: type[BaseModel], seen: dict[str, type[BaseModel]]) -> None:
+    for field in model.model_fields.values():
+        for arg in (field.annotation, *typing.get_args(field.annotation)):
+            for inner in (arg, *typing.get_args(arg)):
+                if (isinstance(inner, type) and issubclass(inner, BaseModel)
+                        and inner not in STANDARD and inner is not Header
+                        and inner.__name__ not in seen):
+                    seen[inner.__name__] = inner
+                    _nested(inner, seen)
+
+
+@cache
+def definitions() -> dict[str, str]:
+    """``.msg`` text of every ``wavegrasp_msgs`` type, by name (``ObjectObservation``...)."""
+    models: dict[str, type[BaseModel]] = dict(MESSAGE_TYPES)
+    for model in list(models.values()):
+        _nested(model, models)
+    out = {name: msg_text(model) for name, model in sorted(models.items())}
+    out["Hop"] = msg_text(Hop)
+    out.update(ENTRY_TEXT)
+    return dict(sorted(out.items()))
+
+
+@cache
+def typestore() -> Typestore:
+    """ROS 2 Humble's types with ``wavegrasp_msgs``'s registered."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    found: dict = {}
+    for name, text in definitions().items():
+        found.update(get_types_from_msg(text, msgtype(name)))
+    store.register(found)
+    return store
+
+
+# -- model -> rosbags message ----------------------------------------------------------------
+Convert = Callable[[Any], Any]
+
+
+def _to_ros(annotation: Any, store: Typestore) -> Convert:
+    """A function from a model's field value to the rosbags value of its .msg field."""
+    annotation = _plain(annotation)
+    inner = _optional(annotation)
+    if inner is not None:
+        if inner in DTYPES:
+            dtype = DTYPES[inner]
+            return lambda v: np.array([] if v is None else [v], dtype=dtype)
+        one = _to_ros(inner, store)
+        return lambda v: [] if v is None else [one(v)]
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        item = _item(annotation, 0)
+        if item in DTYPES:
+            dtype = DTYPES[item]
+            return lambda v: np.asarray(v, dtype=dtype)
+        one = _to_ros(item, store)
+        return lambda v: [one(x) for x in v]
+    if origin is dict:
+        return _dict_to_ros(_item(annotation, 1), store)
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return _model_to_ros(annotation, store)
+    return lambda v: v
+
+
+def _dict_to_ros(value: Any, store: Typestore) -> Convert:
+    entry = _entry(value)
+    cls = store.types[entry.replace("/", "/msg/") if "/" in entry else msgtype(entry)]
+    if entry != "ValueEntry":
+        cast = {"FloatEntry": float, "CountEntry": int}.get(entry, str)
+        return lambda d: [cls(k, cast(v)) for k, v in d.items()]
+
+    def one(k: str, v: float | str | bool) -> Any:
+        if isinstance(v, bool):
+            return cls(k, FLAG, 0.0, "", v)
+        if isinstance(v, str):
+            return cls(k, TEXT, 0.0, v, False)
+        return cls(k, NUMBER, float(v), "", False)
+    return lambda d: [one(k, v) for k, v in d.items()]
+
+
+@cache
+def _model_to_ros(model: type[BaseModel], store: Typestore) -> Convert:
+    cls = store.types[STANDARD.get(model, msgtype(model.__name__))]
+    parts = [(name, field.annotation is Header,
+              _header_to_ros(store) if field.annotation is Header
+              else _to_ros(field.annotation, store))
+             for name, field in model.model_fields.items()]
+
+    def convert(msg: BaseModel) -> Any:
+        args: list[Any] = []
+        for name, two, f in parts:
+            if two:  # header and trace
+                args.extend(f(getattr(msg, name)))
+            else:
+                args.append(f(getattr(msg, name)))
+        return cls(*args)
+    return convert
+
+
+def _header_to_ros(store: Typestore) -> Callable[[Header], tuple[Any, Any]]:
+    ros_header = store.types["std_msgs/msg/Header"]
+    time_ = store.types["builtin_interfaces/msg/Time"]
+    trace, hop = store.types[msgtype("Trace")], store.types[msgtype("Hop")]
+
+    def convert(h: Header) -> tuple[Any, Any]:
+        sec, nanosec = divmod(h.stamp_ns, 1_000_000_000)
+        return (ros_header(time_(sec, nanosec), h.frame_id),
+                trace(h.seq, [hop(x.service, x.recv_ns, x.sent_ns) for x in h.trace]))
+    return convert
+
+
+# -- rosbags message -> model ----------------------------------------------------------------
+def _from_ros(annotation: Any) -> Convert:
+    """A function from a rosbags field value to the value the model's field validates."""
+    annotation = _plain(annotation)
+    inner = _optional(annotation)
+    if inner is not None:
+        one = _from_ros(inner)
+        return lambda v: one(v[0]) if len(v) else None
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        item = _item(annotation, 0)
+        if item in DTYPES:
+            return lambda v: v.tolist()
+        one = _from_ros(item)
+        return lambda v: [one(x) for x in v]
+    if origin is dict:
+        if _entry(_item(annotation, 1)) == "ValueEntry":
+            return lambda v: {e.key: (e.number, e.text, e.flag)[e.kind] if e.kind <= FLAG
+                              else _bad_kind(e) for e in v}
+        return lambda v: {e.key: e.value for e in v}
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return _model_from_ros(annotation)
+    if annotation in DTYPES:
+        return lambda v: v.item() if isinstance(v, np.generic) else v
+    return lambda v: v
+
+
+def _bad_kind(entry: Any) -> None:
+    raise ValueError(f"ValueEntry {entry.key!r}: kind {entry.kind} is none of 0, 1, 2")
+
+
+@cache
+def _model_from_ros(model: type[BaseModel]) -> Convert:
+    parts = [(name, _header_from_ros if field.annotation is Header else
+              _from_ros(field.annotation)) for name, field in model.model_fields.items()]
+
+    def convert(ros: Any) -> dict[str, Any]:
+        out = {}
+        for name, f in parts:
+            out[name] = f(ros) if f is _header_from_ros else f(getattr(ros, name))
+        return out
+    return convert
+
+
+def _header_from_ros(ros: Any) -> dict[str, Any]:
+    stamp = ros.header.stamp
+    return {"seq": ros.trace.seq, "stamp_ns": stamp.sec * 1_000_000_000 + stamp.nanosec,
+            "frame_id": ros.header.frame_id,
+            "trace": [{"service": h.service, "recv_ns": h.recv_ns, "sent_ns": h.sent_ns}
+                      for h in ros.trace.hops]}
+
+
+# -- the codec -------------------------------------------------------------------------------
+def to_cdr(msg: BaseModel) -> bytes:
+    """``msg`` as little-endian CDR of its ``wavegrasp_msgs`` type (with the 4-byte header)."""
+    store = typestore()
+    model = type(msg)
+    return bytes(store.serialize_cdr(_model_to_ros(model, store)(msg),
+                                     msgtype(model.__name__)))
+
+
+def from_cdr(data: bytes | memoryview, model: type[BaseModel]) -> BaseModel:
+    """``model`` from CDR ``data``; ValueError (or pydantic's ValidationError) naming what is
+    wrong when the bytes are not a valid message of its type."""
+    try:
+        ros = typestore().deserialize_cdr(data, msgtype(model.__name__))
+    except Exception as exc:  # rosbags raises several types on malformed bytes
+        raise ValueError(f"not a valid {msgtype(model.__name__)}: {exc}") from None
+    return model.model_validate(_model_from_ros(model)(ros))
