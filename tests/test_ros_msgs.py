@@ -8,25 +8,9 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
+from wavegrasp import schemas as m
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Delivery, decode_model
-from wavegrasp.schemas import (
-    MESSAGE_TYPES,
-    ArmState,
-    CartesianSample,
-    GateDecision,
-    GraspOutcome,
-    GraspPlan,
-    Header,
-    Hop,
-    JointSample,
-    MotionPrediction,
-    ObjectObservation,
-    Pose,
-    PredictionSample,
-    Quaternion,
-    ServiceStats,
-    Vec3,
-)
+from wavegrasp.schemas import Header, Hop
 from wavegrasp.schemas.export import MSG_DIR
 from wavegrasp.schemas.ros import definitions, from_cdr, msgtype, to_cdr, typestore
 
@@ -37,38 +21,38 @@ HEADER = Header(seq=12, stamp_ns=1_700_000_001_250_000_000, frame_id="world",
 
 def samples() -> list[BaseModel]:
     """One of each message, every optional field set in one and unset in another."""
-    v = Vec3(x=0.1, y=-0.2, z=0.3)
-    full = ObjectObservation(header=HEADER, centroid=v, points_used=812, quality=0.9,
+    v = m.Vec3(x=0.1, y=-0.2, z=0.3)
+    full = m.ObjectObservation(header=HEADER, centroid=v, points_used=812, quality=0.9,
                              sigma_m=0.002, reason=None, shape="box", axis=v, radius_m=0.03,
                              length_m=0.12, axial_offset_m=-0.01, fit_rms_m=0.001, side=v,
                              side_width_m=0.05, breadth_m=0.07, seabed_normal=v,
                              seabed_offset_m=1.5)
-    plan = GraspPlan(
+    plan = m.GraspPlan(
         header=HEADER, plan_id="12-170", t_start_ns=10, t_grasp_ns=20,
-        grasp=Pose(position=v, orientation=Quaternion(x=0.5, y=0.5, z=0.5, w=0.5)),
+        grasp=m.Pose(position=v, orientation=m.Quaternion(x=0.5, y=0.5, z=0.5, w=0.5)),
         approach=v, joint_names=["a", "b"],
-        joint_trajectory=[JointSample(t_ns=10, positions=[0.1, 0.2], velocities=[0.0, 1.0]),
-                          JointSample(t_ns=20, positions=[0.3, 0.4])],
-        cartesian_path=[CartesianSample(t_ns=10, x=1.0, y=2.0, z=3.0)], confidence=0.8,
+        joint_trajectory=[m.JointSample(t_ns=10, positions=[0.1, 0.2], velocities=[0.0, 1.0]),
+                          m.JointSample(t_ns=20, positions=[0.3, 0.4])],
+        cartesian_path=[m.CartesianSample(t_ns=10, x=1.0, y=2.0, z=3.0)], confidence=0.8,
         waypoints=[v, v], t_final_ns=15, jaw_preshape_m=0.09, t_close_ns=18,
-        candidates=[Pose(position=v)], standby=[0.0, 1.0], update_of="11-170",
+        candidates=[m.Pose(position=v)], standby=[0.0, 1.0], update_of="11-170",
         t_contact_ns=None)
-    outcome = GraspOutcome(header=HEADER, plan_id="12-170", trial=1, attempt=2, success=False,
+    outcome = m.GraspOutcome(header=HEADER, plan_id="12-170", trial=1, attempt=2, success=False,
                            failure="timing", evidence={"error_m": 0.031, "why": "late",
                                                        "closed": True, "n": 3}, aborted=True)
-    stats = ServiceStats(header=HEADER, service="gate", subscriptions=["a/b"],
+    stats = m.ServiceStats(header=HEADER, service="gate", subscriptions=["a/b"],
                          received={"a/b": 3}, bad={"a/b": 1}, last_bad_reason={"a/b": "x"},
                          counters={"plans": 2}, uptime_s=1.5, cpu_s=0.25)
-    prediction = MotionPrediction(
+    prediction = m.MotionPrediction(
         header=HEADER, model="blend", period_s=2.5, parameters={"k": 0.5}, warm=False,
-        samples=[PredictionSample(t_ns=t, x=0.1 * t, y=0.0, z=-1.0, sigma=0.01)
+        samples=[m.PredictionSample(t_ns=t, x=0.1 * t, y=0.0, z=-1.0, sigma=0.01)
                  for t in range(1, 5)])
-    decision = GateDecision(header=HEADER, plan_id="p", go=False, mean_error_m=None,
+    decision = m.GateDecision(header=HEADER, plan_id="p", go=False, mean_error_m=None,
                             threshold_m=0.02, window_s=1.0, reason="no", failed=["error"],
                             matches=4, latency_s=0.03)
-    arm = ArmState(header=HEADER, joint_names=["a"], positions=[0.5], executing_plan_id="p",
+    arm = m.ArmState(header=HEADER, joint_names=["a"], positions=[0.5], executing_plan_id="p",
                    returning=True)
-    return [full, ObjectObservation(header=Header()), plan, outcome, stats, prediction,
+    return [full, m.ObjectObservation(header=Header()), plan, outcome, stats, prediction,
             decision, arm]
 
 
@@ -83,7 +67,7 @@ def test_msg_files_are_current() -> None:
 
 
 def test_every_message_has_a_ros_type() -> None:
-    for name in MESSAGE_TYPES:
+    for name in m.MESSAGE_TYPES:
         assert msgtype(name) in typestore().fielddefs, name
     fields = typestore().fielddefs[msgtype("GateDecision")][1]
     assert [f[0] for f in fields[:2]] == ["header", "trace"]
@@ -102,8 +86,8 @@ def test_cdr_round_trip(msg: BaseModel) -> None:
 
 
 def test_the_evidence_keeps_its_kinds() -> None:
-    outcome = next(m for m in samples() if isinstance(m, GraspOutcome))
-    back = from_cdr(to_cdr(outcome), GraspOutcome)
+    outcome = next(x for x in samples() if isinstance(x, m.GraspOutcome))
+    back = from_cdr(to_cdr(outcome), m.GraspOutcome)
     assert back.evidence == {"error_m": 0.031, "why": "late", "closed": True, "n": 3.0}
     assert isinstance(back.evidence["closed"], bool) and isinstance(back.evidence["why"], str)
 
@@ -113,32 +97,32 @@ def delivery(payload: bytes, encoding: str) -> Delivery:
 
 
 def test_bad_cdr_is_refused_naming_key_and_problem() -> None:
-    decision = next(m for m in samples() if isinstance(m, GateDecision))
+    decision = next(x for x in samples() if isinstance(x, m.GateDecision))
     good = to_cdr(decision)
     encoding = f"{CDR};{msgtype('GateDecision')}"
-    assert decode_model(delivery(good, encoding), GateDecision) == decision
+    assert decode_model(delivery(good, encoding), m.GateDecision) == decision
     with pytest.raises(BadMessage, match="wavegrasp/gate/decision: not a valid "
                        "wavegrasp_msgs/msg/GateDecision"):
-        decode_model(delivery(good[:-9], encoding), GateDecision)
+        decode_model(delivery(good[:-9], encoding), m.GateDecision)
     with pytest.raises(BadMessage, match="names schema wavegrasp_msgs/msg/GateAbort"):
-        decode_model(delivery(good, f"{CDR};{msgtype('GateAbort')}"), GateDecision)
+        decode_model(delivery(good, f"{CDR};{msgtype('GateAbort')}"), m.GateDecision)
     # Valid CDR whose values break the model's bounds: refused naming the field.
     bad = decision.model_copy(update={"matches": -1})
     with pytest.raises(BadMessage, match="GateDecision.matches"):
-        decode_model(delivery(to_cdr(bad), encoding), GateDecision)
+        decode_model(delivery(to_cdr(bad), encoding), m.GateDecision)
     # JSON (a tool's, or an older sender's) still reads.
     assert decode_model(delivery(decision.model_dump_json().encode(), JSON),
-                        GateDecision) == decision
+                        m.GateDecision) == decision
 
 
 def test_a_value_entry_of_unknown_kind_is_refused() -> None:
-    outcome = next(m for m in samples() if isinstance(m, GraspOutcome))
+    outcome = next(x for x in samples() if isinstance(x, m.GraspOutcome))
     store = typestore()
     ros = store.deserialize_cdr(to_cdr(outcome), msgtype("GraspOutcome"))
     ros.evidence[0].kind = 7
     data = bytes(store.serialize_cdr(ros, msgtype("GraspOutcome")))
     with pytest.raises(ValueError, match="kind 7"):
-        from_cdr(data, GraspOutcome)
+        from_cdr(data, m.GraspOutcome)
 
 
 def test_colcon_package_lists_the_standard_dependencies() -> None:
