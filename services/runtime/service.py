@@ -31,6 +31,7 @@ from wavegrasp.schemas import (
     ack_key,
     stats_key,
 )
+from wavegrasp.schemas.ros import warm_up
 
 log = logging.getLogger(__name__)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -187,6 +188,7 @@ class Service:
         faulthandler.register(signal.SIGUSR1, all_threads=True)
         try:
             self.bus.declare_alive()
+            warm_up()  # a no-op in a service forked from the launcher's server
             self.on_start()
             freeze_startup_objects()
             sys.setswitchinterval(self.settings.switch_interval_ms / 1e3)
