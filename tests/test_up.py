@@ -12,8 +12,12 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from wavegrasp.arm import ArmModel
 from wavegrasp.ops.forked import forkable
+from wavegrasp.recording_io.mcap_read import read_mcap
+from wavegrasp.recording_io.own_messages import read_own
 from wavegrasp.recording_io.reader import open_recording
+from wavegrasp.recording_io.ros_msgs import decode_joint_state
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
 from wavegrasp.runtime.bus import memory_lock_limit
 
@@ -58,9 +62,25 @@ def test_up_fast_records_every_frame_bit_identical(recording: Path, tmp_path: Pa
     assert set(replay.topics) == {"/trisect/points", "/tf_static", "/groundtruth/object"}
     assert replay.metadata.get("seed") == "7"
     check_ros2_readable(out / "run.mcap")
+    check_joint_states(out / "run.mcap")
     # ... and does: the run replayed through the services again.
     again = tmp_path / "again"
     check_run(recording, again, run_up(out / "run.mcap", again))
+
+
+def check_joint_states(run_mcap: Path) -> None:
+    """The sim publishes its joints as a ros2_control arm's driver does, each frame: the
+    arm's and the fingers', as ``wavegrasp/sim/arm_state`` has them."""
+    states = [decode_joint_state(m.data) for _, c, m in read_mcap(run_mcap, ["/joint_states"])]
+    arm = [msg for _, msg, _ in read_own(run_mcap, ["wavegrasp/sim/arm_state"])]
+    assert len(states) == len(arm) >= 45  # published together, in order
+    model = ArmModel.load()
+    for (positions, velocities, stamp), a in zip(states, arm, strict=True):
+        assert stamp == a.header.stamp_ns
+        assert list(positions) == [*model.joint_names, *model.jaw_joints]
+        assert list(positions.values())[:6] == a.positions
+        assert list(velocities.values())[:6] == a.velocities
+        assert sum(positions[n] for n in model.jaw_joints) == pytest.approx(a.jaw_opening_m)
 
 
 def check_ros2_readable(run_mcap: Path) -> None:
@@ -78,7 +98,8 @@ def check_ros2_readable(run_mcap: Path) -> None:
             decoded[connection.topic] = decoded.get(connection.topic, 0) + 1
     assert decoded == in_file
     assert {"/wavegrasp/perception/object", "/wavegrasp/predictor/prediction",
-            "/wavegrasp/sim/arm_state", "/wavegrasp/clock", "/trisect/points"} <= set(decoded)
+            "/wavegrasp/sim/arm_state", "/wavegrasp/clock", "/trisect/points",
+            "/joint_states"} <= set(decoded)
 
 
 def test_up_lockstep_acknowledges_each_frame(recording: Path, tmp_path: Path) -> None:

@@ -135,6 +135,39 @@ def encode_points(points: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
     return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
 
 
+JOINT_STATE = "sensor_msgs/msg/JointState"
+
+
+def encode_joint_state(stamp_ns: int, names: list[str], positions: np.ndarray,
+                       velocities: np.ndarray) -> bytes:
+    """A ``sensor_msgs/msg/JointState`` as CDR bytes, as ros2_control's joint state
+    broadcaster publishes one: positions (n,) and velocities (n,), radians (revolute) or
+    metres (prismatic), per joint of ``names``; no efforts."""
+    p, v = np.asarray(positions, dtype=float), np.asarray(velocities, dtype=float)
+    if p.shape != (len(names),) or v.shape != (len(names),):
+        raise ValueError(f"joint state of {len(names)} joints needs that many positions and "
+                         f"velocities, got shapes {p.shape} and {v.shape}")
+    msg = ros2_typestore().types[JOINT_STATE](
+        header=_header(check_stamp(stamp_ns), ""), name=list(names), position=p, velocity=v,
+        effort=np.zeros(0))
+    return bytes(ros2_typestore().serialize_cdr(msg, JOINT_STATE))
+
+
+def decode_joint_state(cdr: bytes) -> tuple[dict[str, float], dict[str, float], int]:
+    """Positions and velocities by joint name (velocities of the joints that have one), and
+    the stamp (ns) of a ``sensor_msgs/msg/JointState``'s CDR; ValueError naming what is
+    wrong."""
+    msg = _deserialize(cdr, JOINT_STATE)
+    n = len(msg.name)
+    if len(msg.position) != n or len(msg.velocity) not in (0, n):
+        raise ValueError(f"joint state of {n} names with {len(msg.position)} positions and "
+                         f"{len(msg.velocity)} velocities")
+    if not (np.isfinite(msg.position).all() and np.isfinite(msg.velocity).all()):
+        raise ValueError("joint state with a position or velocity that is not finite")
+    return (dict(zip(msg.name, msg.position.tolist(), strict=True)),
+            dict(zip(msg.name, msg.velocity.tolist(), strict=False)), stamp_ns(msg.header))
+
+
 def encode_organized_points(image: np.ndarray, height: int, width: int, stamp_ns: int,
                             frame_id: str, rgb: int = 0x808080) -> bytes:
     """An organized ``sensor_msgs/msg/PointCloud2`` as stereo drivers publish it, as CDR bytes.

@@ -10,7 +10,8 @@ A ``go`` from the gate starts the plan; the jaw closes at the grasp time; the gr
 judged physically (:mod:`wavegrasp.sim.executor`) and published on ``wavegrasp/sim/outcome``
 with the next camera frame's acknowledgement; the arm returns to standby and the pipeline
 tries again, up to ``attempts`` per trial.
-``wavegrasp/sim/arm_state`` is published once a camera frame.
+``wavegrasp/sim/arm_state`` is published once a camera frame, and the joints' state as a
+ros2_control arm's driver publishes it: ``sensor_msgs/msg/JointState`` on ``joint_states``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,13 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
-from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_pose_quaternion, decode_tf
+from wavegrasp.recording_io.ros_msgs import (
+    JOINT_STATE,
+    StaticTransforms,
+    decode_pose_quaternion,
+    decode_tf,
+    encode_joint_state,
+)
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -74,6 +81,9 @@ class SimSettings(Settings):
                                    "this long (recording seconds) after it began or after "
                                    "its last attempt ends as a failure")
     drive_force_n: float = 5.0
+    joint_states_key: str = Field("joint_states", description="where the arm's joints and "
+                                  "fingers go each camera frame as sensor_msgs/msg/JointState "
+                                  "(ros2_control's joint state broadcaster's topic)")
     tether: bool = Field(True, description="a tether from the object's lower end to the "
                          "seabed, which the arm must not touch")
     stop_after_trials: bool = Field(False, description="exit once the last trial has ended "
@@ -453,6 +463,10 @@ class SimService(Service):
             velocities=qd.tolist(), jaw_opening_m=self.world.jaw_opening(),
             executing_plan_id=self._executing,
             returning=self.executor is not None and self.executor.returning))
+        fq, fqd = self.world.finger_q()
+        self.bus.publish_cdr(self.cfg.joint_states_key, encode_joint_state(
+            int(round(self.world.time_s * 1e9)), [*self.arm.joint_names, *self.arm.jaw_joints],
+            np.concatenate([q, fq]), np.concatenate([qd, fqd])), JOINT_STATE)
         self.note_state()
 
     def on_stop(self) -> None:

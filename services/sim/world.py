@@ -230,6 +230,11 @@ class SimWorld:
         states = pb.getJointStates(self.robot, self.joints, physicsClientId=self.client)
         return np.array([s[0] for s in states]), np.array([s[1] for s in states])
 
+    def finger_q(self) -> tuple[np.ndarray, np.ndarray]:
+        """The jaw's finger joints (``arm.jaw_joints``): positions (m) and velocities (m/s)."""
+        states = pb.getJointStates(self.robot, self.fingers, physicsClientId=self.client)
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
     def jaw_opening(self) -> float:
         states = pb.getJointStates(self.robot, self.fingers, physicsClientId=self.client)
         return float(sum(s[0] for s in states))
