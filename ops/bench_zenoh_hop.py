@@ -7,21 +7,23 @@ Run::
 The script starts a router (``wavegrasp router`` on a free port) and an echo process (this
 script with ``--echo``), both clients of the router as deployed: client -> router -> client.
 Both sides use the project's :class:`~wavegrasp.runtime.bus.Bus`, so the whole stack is
-measured (pydantic JSON or raw CDR, zenoh callback, inbox queue, service loop, dispatch).
+measured (a model to CDR and back or raw CDR, zenoh callback, inbox queue, service loop,
+dispatch).
 
 Ping-pong, one message in flight: this process publishes a ping, the echo process's loop
-republishes it on a pong key at once (JSON: decoded and re-published with a trace hop, like a
-service does; CDR: the same bytes via ``publish_cdr``), and this process's loop handles the pong.
+republishes it on a pong key at once (an observation: decoded and re-published with a trace
+hop, like a service does; a cloud: the same bytes via ``publish_cdr``), and this process's
+loop handles the pong.
 
 * hop = round trip / 2, timed with ``perf_counter_ns`` from before ``publish`` to the pong's
   handler on this loop: publish call -> handler in the other process, as a service sees it.
 * direct = echo's ``Delivery.recv_ns`` (wall clock, zenoh callback thread) minus the sender's
-  ``time.time_ns()`` carried in the message (JSON: ``header.trace[-1].sent_ns``, stamped by
-  ``Bus.publish``; CDR: the attachment's ``source_ns``, stamped by ``Bus.publish_cdr``). It
+  ``time.time_ns()`` carried in the message (an observation: ``header.trace[-1].sent_ns``, by
+  ``Bus.publish``; a cloud: the attachment's ``source_ns``, by ``Bus.publish_cdr``). It
   excludes the receiver's inbox queue, loop wake-up and decode. Valid because both processes
   share one wall clock.
 
-Messages: (a) an ObjectObservation (JSON, ~300 bytes), ``--count`` (default 1000) times;
+Messages: (a) an ObjectObservation (CDR, ~300 bytes), ``--count`` (default 1000) times;
 (b) a PointCloud2 of ``--points`` x,y,z float32 points (CDR), ``--count`` (default 300) times;
 each after ``--warmup`` messages that are not counted.
 """
@@ -48,6 +50,7 @@ from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, derived_header, new_header
 from wavegrasp.schemas import ObjectObservation, Vec3
+from wavegrasp.schemas.ros import to_cdr
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ECHO = "bench-echo"
@@ -229,7 +232,7 @@ class Pinger:
         raise RuntimeError("no answer from the echo process")
 
     def small(self, seq: int, pause_s: float = 0.0) -> int:
-        """One JSON round trip, ns, after ``pause_s`` of idleness."""
+        """One observation's round trip, ns, after ``pause_s`` of idleness."""
         time.sleep(pause_s)
         msg = observation(seq)
         t0 = time.perf_counter_ns()
@@ -276,8 +279,8 @@ def run(args: argparse.Namespace) -> list[tuple[str, int, np.ndarray, np.ndarray
         rep = p.report
         d_small = np.array([rep.small[i] for i in range(w, w + n_small)])
         d_cloud = np.array([rep.cloud[i] for i in range(w, w + n_cloud)])
-        size = len(observation(0).model_dump_json().encode())
-        return [("ObjectObservation (JSON)", size, small, d_small),
+        size = len(to_cdr(observation(0)))
+        return [("ObjectObservation (CDR)", size, small, d_small),
                 (f"PointCloud2 {args.points} pts (CDR)", len(cdr), cloud, d_cloud)]
     finally:
         if bus is not None:

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from pydantic import BaseModel
 
-from wavegrasp.runtime.bus import memory_lock_limit, remove_orphaned_segments
+from wavegrasp.runtime.bus import decode_model, memory_lock_limit, remove_orphaned_segments
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import Header, Hop, ObjectObservation, ServiceStats, Vec3, health_key
 
@@ -58,6 +59,27 @@ def test_typed_round_trip_between_processes(router: Router) -> None:
     finally:
         bus.close()
         assert stop(proc) == 0
+
+
+def test_our_messages_go_as_cdr_and_a_tools_own_models_as_json(router: Router) -> None:
+    class Note(BaseModel):  # not one of our messages
+        text: str
+
+    sender, receiver = router.bus("sender"), router.bus("receiver")
+    try:
+        receiver.subscribe("test/**", lambda d: None)
+        time.sleep(0.5)
+        obs = ObjectObservation(header=Header(seq=3, stamp_ns=5), points_used=2)
+        sender.publish("test/obs", obs)
+        sender.publish("test/note", Note(text="hello"))
+        got = {d.key: d for d in (receiver.inbox.get(timeout=5) for _ in range(2))}
+        assert got["test/obs"].encoding == "application/cdr;wavegrasp_msgs/msg/ObjectObservation"
+        assert decode_model(got["test/obs"], ObjectObservation).points_used == 2
+        assert got["test/note"].encoding == "application/json;Note"
+        assert Note.model_validate_json(got["test/note"].payload).text == "hello"
+    finally:
+        sender.close()
+        receiver.close()
 
 
 def test_garbage_is_counted_and_the_service_lives(router: Router) -> None:

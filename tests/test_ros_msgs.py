@@ -3,6 +3,7 @@ through CDR, and bad CDR is refused naming what is wrong."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -131,3 +132,19 @@ def test_colcon_package_lists_the_standard_dependencies() -> None:
             if "/" in line.split(" ")[0] and not line.startswith("#")}
     for package in used:
         assert f"find_package({package} REQUIRED)" in text, package
+
+
+def test_names_follow_rosidl_rules() -> None:
+    """What rosidl (colcon) refuses: type names not in CamelCase, field names not lower case
+    with single underscores, constants not upper case."""
+    field = re.compile(r"^(?!.*__)(?!.*_$)[a-z][a-z0-9_]*$")
+    for name, text in definitions().items():
+        assert re.fullmatch(r"[A-Z][A-Za-z0-9]*", name), name
+        for line in text.splitlines():
+            if not line or line.startswith("#"):
+                continue
+            _type, rest = line.split(" ", 1)
+            if "=" in rest:
+                assert re.fullmatch(r"[A-Z][A-Z0-9_]*", rest.split("=")[0]), (name, line)
+            else:
+                assert field.match(rest), (name, line)

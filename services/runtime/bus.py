@@ -29,7 +29,7 @@ from pydantic import BaseModel, ValidationError
 
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, publisher_gid, stamp_sent
-from wavegrasp.schemas import health_key
+from wavegrasp.schemas import MESSAGE_TYPES, health_key
 from wavegrasp.schemas.ros import from_cdr, to_cdr
 from wavegrasp.schemas.ros import msgtype as ros_msgtype
 
@@ -213,12 +213,18 @@ class Bus:
 
     def publish(self, key: str, msg: BaseModel) -> None:
         """Publish ``msg`` on ``key`` as CDR of its ``wavegrasp_msgs`` type (encoding
-        ``application/cdr;wavegrasp_msgs/msg/NAME``), stamping this service's hop as sent."""
+        ``application/cdr;wavegrasp_msgs/msg/NAME``), stamping this service's hop as sent.
+        A model that is not one of our messages (a tool's own) goes as JSON
+        (``application/json;NAME``)."""
         header = getattr(msg, "header", None)
         if header is not None:
             stamp_sent(header, self.service)
-        encoding = zenoh.Encoding(f"{CDR};{ros_msgtype(type(msg).__name__)}")
-        self._publisher(key, encoding).put(to_cdr(msg))
+        name = type(msg).__name__
+        if MESSAGE_TYPES.get(name) is type(msg):
+            self._publisher(key, zenoh.Encoding(f"{CDR};{ros_msgtype(name)}")).put(to_cdr(msg))
+        else:
+            self._publisher(key, zenoh.Encoding(f"{JSON};{name}")).put(
+                msg.model_dump_json().encode())
 
     def publish_cdr(self, key: str, cdr: bytes, msgtype: str, log_time_ns: int = 0) -> int:
         """Publish CDR bytes unchanged on ``key`` with an attachment; returns its sequence."""
