@@ -176,15 +176,16 @@ def warm_up() -> None:
 Convert = Callable[[Any], Any]
 
 
-def _to_ros(annotation: Any, store: Typestore) -> Convert:
-    """A function from a model's field value to the rosbags value of its .msg field."""
+def _to_ros(annotation: Any, store: Typestore) -> Convert | None:
+    """A function from a model's field value to the rosbags value of its .msg field; None
+    where the value is the same (a number, a flag, a text)."""
     annotation = _plain(annotation)
     inner = _optional(annotation)
     if inner is not None:
         if inner in DTYPES:
-            dtype = DTYPES[inner]
-            return lambda v: np.array([] if v is None else [v], dtype=dtype)
-        one = _to_ros(inner, store)
+            dtype, empty = DTYPES[inner], np.empty(0, DTYPES[inner])  # the serializer only reads
+            return lambda v: empty if v is None else np.array((v,), dtype)
+        one = _to_ros(inner, store) or (lambda v: v)
         return lambda v: [] if v is None else [one(v)]
     origin = typing.get_origin(annotation)
     if origin is list:
@@ -193,12 +194,12 @@ def _to_ros(annotation: Any, store: Typestore) -> Convert:
             dtype = DTYPES[item]
             return lambda v: np.asarray(v, dtype=dtype)
         one = _to_ros(item, store)
-        return lambda v: [one(x) for x in v]
+        return None if one is None else lambda v: [one(x) for x in v]
     if origin is dict:
         return _dict_to_ros(_item(annotation, 1), store)
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return _model_to_ros(annotation, store)
-    return lambda v: v
+    return None
 
 
 def _dict_to_ros(value: Any, store: Typestore) -> Convert:
@@ -220,15 +221,16 @@ def _dict_to_ros(value: Any, store: Typestore) -> Convert:
 @cache
 def _model_to_ros(model: type[BaseModel], store: Typestore) -> Convert:
     cls = store.types[STANDARD.get(model, msgtype(model.__name__))]
-    parts = [(name, field.annotation is Header,
-              _header_to_ros(store) if field.annotation is Header
-              else _to_ros(field.annotation, store))
+    header = _header_to_ros(store)
+    parts = [(name, header if field.annotation is Header else _to_ros(field.annotation, store))
              for name, field in model.model_fields.items()]
 
     def convert(msg: BaseModel) -> Any:
         args: list[Any] = []
-        for name, two, f in parts:
-            if two:  # header and trace
+        for name, f in parts:
+            if f is None:
+                args.append(getattr(msg, name))
+            elif f is header:  # two fields: header and trace
                 args.extend(f(getattr(msg, name)))
             else:
                 args.append(f(getattr(msg, name)))
@@ -249,12 +251,15 @@ def _header_to_ros(store: Typestore) -> Callable[[Header], tuple[Any, Any]]:
 
 
 # -- rosbags message -> model ----------------------------------------------------------------
-def _from_ros(annotation: Any) -> Convert:
-    """A function from a rosbags field value to the value the model's field validates."""
+def _from_ros(annotation: Any) -> Convert | None:
+    """A function from a rosbags field value to the value the model's field validates; None
+    where it is that value already (rosbags gives numbers, flags and texts as Python's)."""
     annotation = _plain(annotation)
     inner = _optional(annotation)
     if inner is not None:
-        one = _from_ros(inner)
+        if inner in DTYPES:
+            return lambda v: v.tolist()[0] if len(v) else None
+        one = _from_ros(inner) or (lambda v: v)
         return lambda v: one(v[0]) if len(v) else None
     origin = typing.get_origin(annotation)
     if origin is list:
@@ -262,7 +267,7 @@ def _from_ros(annotation: Any) -> Convert:
         if item in DTYPES:
             return lambda v: v.tolist()
         one = _from_ros(item)
-        return lambda v: [one(x) for x in v]
+        return None if one is None else lambda v: [one(x) for x in v]
     if origin is dict:
         if _entry(_item(annotation, 1)) == "ValueEntry":
             return lambda v: {e.key: (e.number, e.text, e.flag)[e.kind] if e.kind <= FLAG
@@ -270,9 +275,7 @@ def _from_ros(annotation: Any) -> Convert:
         return lambda v: {e.key: e.value for e in v}
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return _model_from_ros(annotation)
-    if annotation in DTYPES:
-        return lambda v: v.item() if isinstance(v, np.generic) else v
-    return lambda v: v
+    return None
 
 
 def _bad_kind(entry: Any) -> None:
@@ -287,7 +290,12 @@ def _model_from_ros(model: type[BaseModel]) -> Convert:
     def convert(ros: Any) -> dict[str, Any]:
         out = {}
         for name, f in parts:
-            out[name] = f(ros) if f is _header_from_ros else f(getattr(ros, name))
+            if f is None:
+                out[name] = getattr(ros, name)
+            elif f is _header_from_ros:
+                out[name] = f(ros)
+            else:
+                out[name] = f(getattr(ros, name))
         return out
     return convert
 
