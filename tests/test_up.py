@@ -17,7 +17,7 @@ from wavegrasp.ops.forked import forkable
 from wavegrasp.recording_io.mcap_read import read_mcap
 from wavegrasp.recording_io.own_messages import read_own
 from wavegrasp.recording_io.reader import open_recording
-from wavegrasp.recording_io.ros_msgs import decode_joint_state
+from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.recording_io.writer import write_ros1_bag, write_ros2_bag
 from wavegrasp.runtime.bus import memory_lock_limit
 
@@ -71,16 +71,18 @@ def test_up_fast_records_every_frame_bit_identical(recording: Path, tmp_path: Pa
 def check_joint_states(run_mcap: Path) -> None:
     """The sim publishes its joints as a ros2_control arm's driver does, each frame: the
     arm's and the fingers', as ``wavegrasp/sim/arm_state`` has them."""
-    states = [decode_joint_state(m.data) for _, c, m in read_mcap(run_mcap, ["/joint_states"])]
+    states = [ros2_typestore().deserialize_cdr(m.data, "sensor_msgs/msg/JointState")
+              for _, _, m in read_mcap(run_mcap, ["/joint_states"])]
     arm = [msg for _, msg, _ in read_own(run_mcap, ["wavegrasp/sim/arm_state"])]
     assert len(states) == len(arm) >= 45  # published together, in order
     model = ArmModel.load()
-    for (positions, velocities, stamp), a in zip(states, arm, strict=True):
-        assert stamp == a.header.stamp_ns
-        assert list(positions) == [*model.joint_names, *model.jaw_joints]
-        assert list(positions.values())[:6] == a.positions
-        assert list(velocities.values())[:6] == a.velocities
-        assert sum(positions[n] for n in model.jaw_joints) == pytest.approx(a.jaw_opening_m)
+    n = len(model.joint_names)
+    for state, a in zip(states, arm, strict=True):
+        assert state.header.stamp.sec * 10**9 + state.header.stamp.nanosec == a.header.stamp_ns
+        assert state.name == [*model.joint_names, *model.jaw_joints]
+        assert state.position[:n].tolist() == a.positions
+        assert state.velocity[:n].tolist() == a.velocities
+        assert state.position[n:].sum() == pytest.approx(a.jaw_opening_m)
 
 
 def check_ros2_readable(run_mcap: Path) -> None:

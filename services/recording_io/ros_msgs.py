@@ -153,21 +153,6 @@ def encode_joint_state(stamp_ns: int, names: list[str], positions: np.ndarray,
     return bytes(ros2_typestore().serialize_cdr(msg, JOINT_STATE))
 
 
-def decode_joint_state(cdr: bytes) -> tuple[dict[str, float], dict[str, float], int]:
-    """Positions and velocities by joint name (velocities of the joints that have one), and
-    the stamp (ns) of a ``sensor_msgs/msg/JointState``'s CDR; ValueError naming what is
-    wrong."""
-    msg = _deserialize(cdr, JOINT_STATE)
-    n = len(msg.name)
-    if len(msg.position) != n or len(msg.velocity) not in (0, n):
-        raise ValueError(f"joint state of {n} names with {len(msg.position)} positions and "
-                         f"{len(msg.velocity)} velocities")
-    if not (np.isfinite(msg.position).all() and np.isfinite(msg.velocity).all()):
-        raise ValueError("joint state with a position or velocity that is not finite")
-    return (dict(zip(msg.name, msg.position.tolist(), strict=True)),
-            dict(zip(msg.name, msg.velocity.tolist(), strict=False)), stamp_ns(msg.header))
-
-
 def encode_organized_points(image: np.ndarray, height: int, width: int, stamp_ns: int,
                             frame_id: str, rgb: int = 0x808080) -> bytes:
     """An organized ``sensor_msgs/msg/PointCloud2`` as stereo drivers publish it, as CDR bytes.

@@ -430,9 +430,9 @@ def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:
         if kind == CDR:
             return from_cdr(delivery.payload, model)
         return model.model_validate_json(delivery.payload)
-    except ValueError as exc:
-        if not isinstance(exc, ValidationError):
-            raise BadMessage(f"{delivery.key}: {exc}") from None
+    except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "payload"
         raise BadMessage(f"{delivery.key}: {model.__name__}.{where}: {err['msg']}") from None
+    except ValueError as exc:  # not CDR of the type at all
+        raise BadMessage(f"{delivery.key}: {exc}") from None
