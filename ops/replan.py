@@ -28,7 +28,7 @@ from wavegrasp.recording_io.mcap_read import read_mcap
 from wavegrasp.recording_io.own_messages import decode_own, own_topics
 from wavegrasp.recording_io.ros_msgs import decode_tf
 from wavegrasp.runtime.bus import Delivery
-from wavegrasp.sim.main import ARM_STATE_KEY, OUTCOME_KEY
+from wavegrasp.sim.main import OUTCOME_KEY
 
 TF_STATIC_TOPIC = "/tf_static"
 #: What the planner counts for each prediction it planned on.
@@ -48,20 +48,28 @@ def replan(path: Path, endpoint: str, each: bool = False) -> Counter:
     # Replayed as fast as it goes: every prediction planned on as it comes, as in lockstep.
     service = PlannerService(PlannerSettings.from_env(
         "planner", env={"ZENOH_CONNECT": endpoint, "WAVEGRASP_PACE": "lockstep"}))
-    handlers = {OBJECT_KEY: service.on_observation, ARM_STATE_KEY: service.on_arm_state,
-                DECISION_KEY: service.on_decision, OUTCOME_KEY: service.on_outcome,
-                PREDICTION_KEY: service.on_prediction}
+    handlers = {OBJECT_KEY: service.on_observation, DECISION_KEY: service.on_decision,
+                OUTCOME_KEY: service.on_outcome, PREDICTION_KEY: service.on_prediction}
+    # The arm's own topics, in ROS 2 types: the planner decodes them itself.
+    arm = {service.cfg.joint_states_key: service.on_joint_states,
+           service.cfg.arm_trajectory_key: service.on_arm_trajectory}
     t0: int | None = None
     try:
-        for schema, channel, message in read_mcap(path, [*own_topics(handlers),
-                                                         TF_STATIC_TOPIC]):
+        topics = [*own_topics(handlers), TF_STATIC_TOPIC, *(f"/{key}" for key in arm)]
+        for schema, channel, message in read_mcap(path, topics):
             t0 = message.log_time if t0 is None else t0
             if channel.topic == TF_STATIC_TOPIC:
                 service.tf.update(decode_tf(message.data))
                 continue
             key = channel.topic.lstrip("/")
-            handle = handlers[key]
             delivery = Delivery(key, message.data, "", None, message.log_time, 0)
+            if key in arm:
+                try:
+                    arm[key](delivery)
+                except ValueError as exc:
+                    service.bus.count_bad(key, str(exc)[:300])
+                continue
+            handle = handlers[key]
             try:
                 msg = decode_own(schema, channel, message)
                 if msg is None:

@@ -74,6 +74,12 @@ ROS_KEYS: dict[str, str] = {
     "tf_static": "tf2_msgs/msg/TFMessage",
     "groundtruth/object": "geometry_msgs/msg/PoseStamped",
     "wavegrasp/perception/points": "sensor_msgs/msg/PointCloud2",  # the object's, in world
+    # The arm's, as ros2_control names them by default (runtime.settings.ArmTopics): a
+    # bridge from a real arm's ROS 2 graph sends CDR without naming its type.
+    "clock": "rosgraph_msgs/msg/Clock",  # the player's ticks, for nodes with use_sim_time
+    "joint_states": "sensor_msgs/msg/JointState",
+    "arm/joint_trajectory_controller/joint_trajectory": "trajectory_msgs/msg/JointTrajectory",
+    "jaw/joint_trajectory_controller/joint_trajectory": "trajectory_msgs/msg/JointTrajectory",
 }
 
 

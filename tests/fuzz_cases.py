@@ -440,3 +440,59 @@ EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
                                        received={"k": 3}, bad={"k": 1}, uptime_s=1.5),
 }
 assert set(EXAMPLES) == set(MESSAGE_TYPES.values()), "add an example of the new message type"
+
+
+# --- the arm's ROS 2 messages -------------------------------------------------------------
+
+JOINT_STATE_ENC = f"{CDR};sensor_msgs/msg/JointState"
+TRAJECTORY_ENC = f"{CDR};trajectory_msgs/msg/JointTrajectory"
+
+
+def joint_state_cdr(stamp_ns: int, names: list[str], positions: list[float],
+                    velocities: list[float]) -> bytes:
+    """A JointState as any driver may send it: sizes unchecked."""
+    t = ros2_typestore().types
+    msg = t["sensor_msgs/msg/JointState"](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+            sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=""),
+        name=list(names), position=np.array(positions, dtype=float),
+        velocity=np.array(velocities, dtype=float), effort=np.zeros(0))
+    return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+
+
+def trajectory_cdr(stamp_ns: int, names: list[str], points: list[tuple[float, list[float]]]
+                   ) -> bytes:
+    """A JointTrajectory of (seconds from its stamp, positions) points: sizes unchecked."""
+    t = ros2_typestore().types
+    pts = [t["trajectory_msgs/msg/JointTrajectoryPoint"](
+        positions=np.array(q, dtype=float), velocities=np.zeros(0), accelerations=np.zeros(0),
+        effort=np.zeros(0), time_from_start=t["builtin_interfaces/msg/Duration"](
+            sec=int(s), nanosec=int(round((s - int(s)) * 1e9)))) for s, q in points]
+    msg = t["trajectory_msgs/msg/JointTrajectory"](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+            sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=""),
+        joint_names=list(names), points=pts)
+    return bytes(ros2_typestore().serialize_cdr(msg, "trajectory_msgs/msg/JointTrajectory"))
+
+
+def joint_state_semantic_cases(stamp_ns: int, names: list[str], q: list[float]) -> list[Case]:
+    n = len(names)
+    return [Case("fewer positions than names", joint_state_cdr(stamp_ns, names, q[:-1], [0.0] * n),
+                 JOINT_STATE_ENC, r"\d+ names but \d+ positions", recorded=True),
+            Case("NaN position", joint_state_cdr(stamp_ns, names, [math.nan, *q[1:]], []),
+                 JOINT_STATE_ENC, r"not finite", recorded=True),
+            Case("another arm's joints", joint_state_cdr(stamp_ns, [f"j{k}" for k in range(n)],
+                                                         q, []),
+                 JOINT_STATE_ENC, r"joint_states lacks joints", recorded=True)]
+
+
+def trajectory_semantic_cases(stamp_ns: int, names: list[str], q: list[float]) -> list[Case]:
+    return [Case("no points", trajectory_cdr(stamp_ns, names, []), TRAJECTORY_ENC,
+                 r"no points", recorded=True),
+            Case("times not increasing", trajectory_cdr(stamp_ns, names, [(0.5, q), (0.5, q)]),
+                 TRAJECTORY_ENC, r"increase strictly", recorded=True),
+            Case("a point short of a joint", trajectory_cdr(stamp_ns, names, [(0.0, q[:-1])]),
+                 TRAJECTORY_ENC, r"point 0 has \d+ positions", recorded=True),
+            Case("another arm's joints", trajectory_cdr(
+                stamp_ns, [f"j{k}" for k in range(len(names))], [(0.0, q)]),
+                TRAJECTORY_ENC, r"neither the arm's|not the arm's", recorded=True)]

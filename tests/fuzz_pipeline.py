@@ -16,12 +16,13 @@ from wavegrasp.predictor.main import PredictorService, PredictorSettings
 from wavegrasp.runtime.bus import CDR
 from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
-    ArmState,
+    ArmStandby,
     Clock,
     GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
+    JointSample,
     MotionPrediction,
     ObjectObservation,
     Pose,
@@ -31,13 +32,19 @@ from wavegrasp.schemas import (
 
 from conftest import wait_until
 from fuzz_cases import (
+    JOINT_STATE_ENC,
+    TRAJECTORY_ENC,
     Case,
     attachment,
     cloud_cdr,
     cloud_semantic_cases,
     header,
     huge_cloud_case,
+    joint_state_cdr,
+    joint_state_semantic_cases,
     message_case,
+    trajectory_cdr,
+    trajectory_semantic_cases,
 )
 from fuzz_harness import Harness, Scenario
 
@@ -194,16 +201,24 @@ class PlannerScenario(Scenario):
         self.t_ns = int(self.sample.truth_ns[self.i])
         return self.sample.prediction(self.i, warm, seq=self.i)
 
-    def arm_state(self) -> ArmState:
-        n = len(self.arm.joint_names)
-        return ArmState(header=header(self.t_ns), joint_names=list(self.arm.joint_names),
-                        positions=self.arm.q_home.tolist(), velocities=[0.0] * n)
+    def joint_state(self, kind: str = "valid") -> Case:
+        """The arm at rest at home, its fingers too, as ros2_control's broadcaster says."""
+        names = [*self.arm.joint_names, *self.arm.jaw_joints]
+        return Case(kind, joint_state_cdr(self.t_ns, names, [*self.arm.q_home, 0.0, 0.0],
+                                          [0.0] * len(names)), JOINT_STATE_ENC, None)
+
+    def trajectory(self, kind: str = "valid", ends_s: float = -1.0) -> Case:
+        """The arm's commanded path, ending ``ends_s`` from now (before: it is idle)."""
+        q = list(self.arm.q_home)
+        start_ns = self.t_ns + int((ends_s - 2.0) * 1e9)
+        return Case(kind, trajectory_cdr(start_ns, list(self.arm.joint_names),
+                                         [(0.0, q), (2.0, q)]), TRAJECTORY_ENC, None)
 
     def plan_once(self, h: Harness) -> GraspPlan:
         """With the arm at rest and no plan executing, a warm prediction gets its plan."""
         h.send_msg("wavegrasp/sim/outcome", GraspOutcome(header=header(self.t_ns), plan_id="x",
                                                          trial=0, attempt=1, success=False))
-        h.send_msg("wavegrasp/sim/arm_state", self.arm_state())
+        h.send("joint_states", self.joint_state())
         pred = self.prediction()
         h.send_msg("wavegrasp/clock", Clock(header=header(self.t_ns), rate=0.0))
         h.send_msg("wavegrasp/predictor/prediction", pred)
@@ -220,8 +235,10 @@ class PlannerScenario(Scenario):
             return Case("valid", self.sample.tf, f"{CDR};tf2_msgs/msg/TFMessage", None)
         if key == "wavegrasp/perception/object":
             return message_case("valid", ObjectObservation(header=header(t), reason="no object"))
-        if key == "wavegrasp/sim/arm_state":
-            return message_case("valid", self.arm_state())
+        if key == "joint_states":
+            return self.joint_state()
+        if key == "arm/joint_trajectory_controller/joint_trajectory":
+            return self.trajectory()
         if key == "wavegrasp/gate/decision":
             return message_case("valid", GateDecision(header=header(t), plan_id="x", go=False,
                                                       mean_error_m=None, threshold_m=0.01,
@@ -236,6 +253,14 @@ class PlannerScenario(Scenario):
             return message_case("valid", self.prediction(warm=False))
         return super().valid(key)
 
+    def semantic(self, key: str) -> list[Case]:
+        names, q = list(self.arm.joint_names), list(self.arm.q_home)
+        if key == "joint_states":
+            return joint_state_semantic_cases(self.t_ns, names, q)
+        if key == "arm/joint_trajectory_controller/joint_trajectory":
+            return trajectory_semantic_cases(self.t_ns, names, q)
+        return super().semantic(key)
+
     def odd(self, key: str) -> list[Case]:
         t = self.t_ns
         if key == "wavegrasp/predictor/prediction":
@@ -249,15 +274,10 @@ class PlannerScenario(Scenario):
                     message_case("older prediction", self.sample.prediction(self.i - 3),
                                  rf"out of order: stamp \d+ <= last {t}"),
                     message_case("prediction 2 ns long", blip)]  # no plan in it
-        if key == "wavegrasp/sim/arm_state":
-            state = self.arm_state()
-            short = state.model_copy(update={"positions": state.positions[:-1]})
-            other = state.model_copy(update={"joint_names": [
-                f"j{k}" for k in range(len(state.joint_names))]})
-            return [message_case("fewer positions than joints", short,
-                                 r"arm_state has \d+ joint_names but \d+ positions"),
-                    message_case("another arm's joints", other, r"arm_state lacks joints"),
-                    message_case("duplicate arm state", state)]
+        if key == "joint_states":
+            return [self.joint_state("duplicate joint state")]
+        if key == "arm/joint_trajectory_controller/joint_trajectory":
+            return [self.trajectory("a path that ended long ago", -100.0)]
         if key == "wavegrasp/gate/decision":
             go = GateDecision(header=header(t), plan_id="never-planned", go=True,
                               mean_error_m=0.001, threshold_m=0.01, window_s=2.0)
@@ -307,11 +327,22 @@ class GateScenario(Scenario):
                                 period_s=self.PERIOD_S, samples=samples)
 
     def plan(self, made_s: float, start_s: float, grasp_s: float, plan_id: str) -> GraspPlan:
-        g = self.motion(grasp_s)
+        """A plan the arm can follow: holding its home pose from the start to the grasp."""
+        g, arm = self.motion(grasp_s), ArmModel.load(None)
         return GraspPlan(header=header(self.ns(made_s)), plan_id=plan_id,
                          t_start_ns=self.ns(start_s), t_grasp_ns=self.ns(grasp_s),
                          grasp=Pose(position=Vec3(x=g[0], y=g[1], z=g[2])),
-                         approach=Vec3(x=0, y=0, z=-1))
+                         approach=Vec3(x=0, y=0, z=-1), joint_names=list(arm.joint_names),
+                         joint_trajectory=[JointSample(t_ns=self.ns(t), positions=list(arm.q_home))
+                                           for t in sorted({start_s, grasp_s})])
+
+    def standby(self, t_s: float, names: list[str] | None = None) -> ArmStandby:
+        arm = ArmModel.load(None)
+        return ArmStandby(header=header(self.ns(t_s)), t_start_ns=self.ns(t_s + 0.1),
+                          joint_names=names or list(arm.joint_names),
+                          joint_trajectory=[JointSample(t_ns=self.ns(t_s + k / 10),
+                                                        positions=list(arm.q_home))
+                                            for k in (1, 2)])
 
     def feed(self, h: Harness, start: int, end: int) -> None:
         """An observation and a prediction every 0.1 s, from ``start`` to ``end`` tenths."""
@@ -352,6 +383,8 @@ class GateScenario(Scenario):
             return message_case("valid", GraspOutcome(header=header(self.ns(t_s)),
                                                       plan_id="stale", trial=0, attempt=1,
                                                       success=False))
+        if key == "wavegrasp/planner/standby":
+            return message_case("valid", self.standby(t_s))
         return super().valid(key)
 
     def odd(self, key: str) -> list[Case]:
@@ -372,6 +405,8 @@ class GateScenario(Scenario):
             out = GraspOutcome(header=header(self.ns(1.0)), plan_id="a", trial=0, attempt=1,
                                success=True)
             return [message_case("old outcome", out), message_case("duplicate outcome", out)]
+        if key == "wavegrasp/planner/standby":  # checked at the frame's end: not counted
+            return [message_case("standby for another arm", self.standby(t_s, ["a", "b"]))]
         return super().odd(key)
 
     def after(self, h: Harness) -> None:

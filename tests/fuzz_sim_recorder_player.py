@@ -14,16 +14,15 @@ from wavegrasp.player.main import Player, PlayerSettings
 from wavegrasp.recorder.main import Recorder, RecorderSettings
 from wavegrasp.recording_io.own_messages import decode_own
 from wavegrasp.recording_io.reader import open_recording
+from wavegrasp.recording_io.ros_msgs import encode_clock
 from wavegrasp.runtime.bus import CDR, JSON
 from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
     ROS_KEYS,
-    ArmStandby,
     ArmState,
     FrameAck,
     GateAbort,
     GateDecision,
-    JointSample,
     ObjectMesh,
     ObjectObservation,
     PlayerStatus,
@@ -37,15 +36,21 @@ from conftest import wait_until
 from fuzz_cases import (
     CDR_HEADER,
     EXAMPLES,
+    JOINT_STATE_ENC,
+    TRAJECTORY_ENC,
     Case,
     attachment,
     cloud_semantic_cases,
     example_plan,
     header,
+    joint_state_cdr,
+    joint_state_semantic_cases,
     message_case,
     pose_semantic_cases,
     store,
     tetrahedron,
+    trajectory_cdr,
+    trajectory_semantic_cases,
 )
 from fuzz_harness import SAMPLE, Harness, Scenario
 
@@ -102,8 +107,9 @@ class SimScenario(Scenario):
             return message_case("valid", self.sample.prediction(self.i, seq=self.i))
         if key == "wavegrasp/planner/plan":
             return message_case("valid", example_plan("stored", t))
-        if key == "wavegrasp/planner/standby":
-            return message_case("valid", self.standby(t))
+        if key in ("arm/joint_trajectory_controller/joint_trajectory",
+                   "jaw/joint_trajectory_controller/joint_trajectory"):
+            return self.trajectory(key)
         if key == "wavegrasp/player/status":  # the scene is built: its object stays
             return message_case("valid", EXAMPLES[PlayerStatus]().model_copy(
                 update={"header": header(t), "metadata": {"scenario": '{"object": 1}'}}))
@@ -116,15 +122,15 @@ class SimScenario(Scenario):
                                                    reason="stale prediction"))
         return super().valid(key)
 
-    @staticmethod
-    def standby(t: int) -> ArmStandby:
-        """A valid move of the arm to where it is: its home pose, held."""
+    def trajectory(self, key: str, kind: str = "valid", names: list[str] | None = None
+                   ) -> Case:
+        """A path holding the arm (or the jaw) where it is: its home pose (the jaw open)."""
         arm = ArmModel.load(None)
-        return ArmStandby(header=header(t), t_start_ns=t + 10**8,
-                          joint_names=list(arm.joint_names),
-                          joint_trajectory=[JointSample(t_ns=t + k * 10**8,
-                                                        positions=arm.q_home.tolist())
-                                            for k in (1, 2)])
+        if names is None:
+            names = list(arm.jaw_joints if key.startswith("jaw/") else arm.joint_names)
+        q = [0.02] * len(names) if key.startswith("jaw/") else list(arm.q_home)
+        return Case(kind, trajectory_cdr(self.t_ns, names, [(0.1, q), (0.2, q)]),
+                    TRAJECTORY_ENC, None)
 
     def cdr_basis(self, key: str) -> bytes:
         if key == "groundtruth/object":
@@ -134,6 +140,10 @@ class SimScenario(Scenario):
     def semantic(self, key: str) -> list[Case]:
         if key == "groundtruth/object":
             return pose_semantic_cases(self.t_ns + 1)
+        if key.endswith("/joint_trajectory"):
+            arm = ArmModel.load(None)
+            return trajectory_semantic_cases(self.t_ns, list(arm.joint_names),
+                                             list(arm.q_home))
         return super().semantic(key)
 
     def odd(self, key: str) -> list[Case]:
@@ -159,15 +169,11 @@ class SimScenario(Scenario):
                 header=header(t), shape="sphere", volume_m3=0.0, frames=1,
                 **encode_mesh(flat, np.array([[0, 1, 2]]))),
                 r"mesh of 3 vertices: a closed mesh needs 4")]
-        if key == "wavegrasp/planner/standby":
-            other = self.standby(t).model_copy(update={"joint_names": ["a", "b"]})
-            narrow = self.standby(t)
-            narrow.joint_trajectory[0].positions = [0.0, 0.0]
-            return [message_case("standby for another arm", other,
-                                 r"standby joint_names .* are not the arm's"),
-                    message_case("standby of 2 positions a sample", narrow,
-                                 r"standby joint_trajectory needs 2 or more samples, each of 6 "
-                                 r"positions")]
+        if key.endswith("/joint_trajectory"):  # the same path again: followed alike
+            arm = ArmModel.load(None)
+            names = list(arm.jaw_joints if key.startswith("jaw/") else arm.joint_names)
+            return [self.trajectory(key, "duplicate path"),
+                    self.trajectory(key, "its joints in another order", names[::-1])]
         if key == "wavegrasp/planner/plan":
             narrow = example_plan("narrow", t, joints=2)
             narrow.joint_names = list(ArmModel.load(None).joint_names)
@@ -211,6 +217,16 @@ class RecorderScenario(Scenario):
         if key == "groundtruth/object":
             return Case("valid", self.sample.truth_cdr[0], f"{CDR};{ROS_KEYS[key]}", None,
                         attachment(0, int(self.sample.truth_ns[0])))
+        if key == "clock":
+            return Case("valid", encode_clock(self.t_ns), f"{CDR};{ROS_KEYS[key]}", None)
+        arm = ArmModel.load(None)
+        if key == "joint_states":
+            names = [*arm.joint_names, *arm.jaw_joints]
+            return Case("valid", joint_state_cdr(self.t_ns, names, [0.0] * len(names), []),
+                        JOINT_STATE_ENC, None)
+        if key.endswith("/joint_trajectory"):
+            return Case("valid", trajectory_cdr(self.t_ns, list(arm.joint_names),
+                                                [(0.0, list(arm.q_home))]), TRAJECTORY_ENC, None)
         if key in ROS_KEYS:  # camera frames, perception's object points
             m = self.sample.frames[0]
             return Case("valid", m.cdr, f"{CDR};{ROS_KEYS[key]}", None,
@@ -222,6 +238,13 @@ class RecorderScenario(Scenario):
             return cloud_semantic_cases(self.sample.camera_points(0), self.t_ns)
         if key == "groundtruth/object":
             return pose_semantic_cases(self.t_ns)
+        arm = ArmModel.load(None)
+        if key == "joint_states":
+            return joint_state_semantic_cases(self.t_ns, list(arm.joint_names),
+                                              list(arm.q_home))
+        if key.endswith("/joint_trajectory"):
+            return trajectory_semantic_cases(self.t_ns, list(arm.joint_names),
+                                             list(arm.q_home))
         if key == "fuzz/unknown":
             return [Case("JSON without a schema", b"{}", JSON,
                          r"^fuzz/unknown: no message type known for this key"),

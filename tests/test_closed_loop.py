@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from wavegrasp.arm import ArmModel
+from wavegrasp.gate.command import Commander
 from wavegrasp.gate.decision import Gate
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.main import to_message
@@ -131,7 +132,9 @@ def follow(arm: ArmModel, T_world_base: np.ndarray, truth, closed: bool,  # noqa
     try:
         world.place_object(truth(SIM_NOW), UPRIGHT)
         world.step_to(SIM_NOW)
-        executor = Executor(world)
+        executor, commander = Executor(world), Commander(arm)
+        for commanded in commander.grasp(attempt):  # as the gate commands it
+            executor.follow(commanded)
         executor.start(attempt)
         result, found = None, None
         for k, t in enumerate(SIM_NOW + np.arange(1, 600) * 0.01):
@@ -154,11 +157,15 @@ def follow(arm: ArmModel, T_world_base: np.ndarray, truth, closed: bool,  # noqa
                 if isinstance(moved_plan, Plan):
                     plan = moved_plan
                     keep = plan.times >= t + cfg.update_delay_s - 1e-9
-                    executor.splice(Attempt("u", plan.times[keep], plan.q[keep],
-                                            plan.qd[keep], plan.t_grasp,
-                                            plan.grasp_T_world[:3, 3], plan.t_final,
-                                            plan.jaw_preshape_m, plan.t_close), "p")
+                    update = Attempt("u", plan.times[keep], plan.q[keep], plan.qd[keep],
+                                     plan.t_grasp, plan.grasp_T_world[:3, 3], plan.t_final,
+                                     plan.jaw_preshape_m, plan.t_close)
+                    for commanded in commander.grasp(update, update=True):
+                        executor.follow(commanded)
+                    executor.splice(update, "p")
             if abort_at is not None and t >= abort_at and executor.attempt is not None:
+                for commanded in commander.abort(t):
+                    executor.follow(commanded)
                 result = executor.abort("test" if found is None else found[1])
             judged = executor.advance(t, truth(t), UPRIGHT)
             result = result or judged

@@ -9,8 +9,10 @@ import time
 import numpy as np
 import pytest
 
+from wavegrasp.arm import ArmModel
 from wavegrasp.gate.decision import Gate, GateConfig, time_average
 from wavegrasp.gate.main import GateService, GateSettings
+from wavegrasp.recording_io.ros_msgs import decode_joint_trajectory
 from wavegrasp.runtime.bus import JSON, Bus, Delivery
 from wavegrasp.schemas import (
     Clock,
@@ -19,6 +21,7 @@ from wavegrasp.schemas import (
     GraspPlan,
     Header,
     Hop,
+    JointSample,
     MotionPrediction,
     ObjectObservation,
     Pose,
@@ -72,11 +75,14 @@ def feed(gate: Gate, start_s: float = 0.0, end_s: float = 3.0, offset=(0.0, 0.0,
 
 
 def plan(made_s: float, start_s: float, grasp_s: float, plan_id: str = "p1") -> GraspPlan:
-    g = motion(grasp_s)
+    """A plan for our arm, holding its home pose from its start to the grasp."""
+    g, arm = motion(grasp_s), ArmModel.load()
     return GraspPlan(header=Header(stamp_ns=ns(made_s), trace=[Hop(service="source", recv_ns=1)]),
                      plan_id=plan_id, t_start_ns=ns(start_s), t_grasp_ns=ns(grasp_s),
                      grasp=Pose(position=Vec3(x=g[0], y=g[1], z=g[2])),
-                     approach=Vec3(x=0, y=0, z=-1))
+                     approach=Vec3(x=0, y=0, z=-1), joint_names=list(arm.joint_names),
+                     joint_trajectory=[JointSample(t_ns=ns(t), positions=list(arm.q_home))
+                                       for t in sorted({start_s, grasp_s})])
 
 
 def decide(gate: Gate, p: GraspPlan, now_s: float, alive=ALIVE,
@@ -263,6 +269,10 @@ def test_gate_service_on_an_isolated_bus() -> None:
         routes = {key: i for i, key in enumerate(bus.subscriptions)}
         seen: list[GateDecision] = []
         bus.subscribe("wavegrasp/gate/decision", lambda m, d: seen.append(m), GateDecision)
+        commanded: list[tuple[str, tuple]] = []  # what the arm's controllers were sent
+        for key in (settings.arm_trajectory_key, settings.jaw_trajectory_key):
+            bus.subscribe(key, lambda d: commanded.append(
+                (d.key, decode_joint_trajectory(d.payload))))
 
         def send(key: str, msg) -> bool:
             payload = msg.model_dump_json().encode()
@@ -298,15 +308,28 @@ def test_gate_service_on_an_isolated_bus() -> None:
         assert [h.service for h in d.header.trace] == ["source", "gate"]
         assert d.header.stamp_ns == ns(3.0) and d.header.trace[-1].sent_ns > 0
         assert not bad.go and bad.reason.startswith("bad plan: plan bad: t_grasp_ns before")
+        # The go's paths went to the arm's and the jaw's controllers before the go itself.
+        assert [key for key, _ in commanded] == [settings.arm_trajectory_key,
+                                                 settings.jaw_trajectory_key]
+        (arm_names, times, _q, _qd), (jaw_names, jaw_times, _, _) = (x for _, x in commanded)
+        assert arm_names == list(service.commander.names)
+        assert times[0] == pytest.approx(ns(3.3) * 1e-9)
+        assert times[-1] >= ns(4.0) * 1e-9 + settings.hold_s - 1e-6  # held, then back
+        assert jaw_names == list(service.commander.jaw_names) and len(jaw_times) >= 4
         outcome = GraspOutcome(header=Header(), plan_id="a", trial=0, attempt=0, success=True)
         assert send("wavegrasp/sim/outcome", outcome)
         assert not service.gate.executing
+        pathless = plan(3.1, 3.4, 4.1, "pathless").model_copy(update={"joint_trajectory": []})
+        assert send("wavegrasp/planner/plan", pathless)  # cannot be followed: no go
+        refused = decisions(4)[3]
+        assert not refused.go and refused.reason == "bad plan: plan pathless: no joint_trajectory"
+        assert not service.gate.executing and len(commanded) == 2
         assert not send("wavegrasp/predictor/prediction", MotionPrediction(
             header=Header(), model="m", period_s=1.0, samples=[]))  # counted as bad, not fatal
         assert bus.bad["wavegrasp/predictor/prediction"] == 1
-        assert service.counters["go"] == 1 and service.counters["no-go"] == 2
+        assert service.counters["go"] == 1 and service.counters["no-go"] == 3
         assert service.counters["no-go: upstream"] == 1
-        assert service.counters["no-go: bad plan"] == 1
+        assert service.counters["no-go: bad plan"] == 2
         assert service.counters["errors scored"] == 29
         tokens.pop().undeclare()  # the planner goes away: the gate sees it gone
         assert wait_until(lambda: "planner" not in bus.alive_now(), timeout=5)

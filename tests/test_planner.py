@@ -48,11 +48,11 @@ from wavegrasp.planner.timing import (
     segment,
     spline_path,
 )
+from wavegrasp.recording_io.ros_msgs import encode_joint_state, encode_joint_trajectory
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
     ArmStandby,
-    ArmState,
     GraspOutcome,
     GraspPlan,
     MotionPrediction,
@@ -454,27 +454,34 @@ def test_a_grasp_that_failed_is_not_tried_first_again(router: Router) -> None:
         service.bus.close()
 
 
-def test_no_plan_is_made_while_the_arm_returns_to_its_standby(router: Router,
-                                                               arm: ArmModel) -> None:
+def test_no_plan_is_made_while_the_arm_follows_its_commanded_path(router: Router,
+                                                                 arm: ArmModel) -> None:
     """The return to the standby after an attempt starts at rest: planned on from where the
     grasp left the arm, one prediction found nothing and asked for a standby move that the
     returning arm ignored, and the planner waited out that move's 8 s while the trial ran
-    out (random-191-000). An arm that says it is returning is not idle, though at rest."""
+    out (random-191-000). An arm whose commanded path (the gate's JointTrajectory) has not
+    ended as of its latest JointState is not idle, though at rest."""
     service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    names, n = list(arm.joint_names), len(arm.joint_names)
     try:
-        def at_rest(returning: bool) -> None:
-            service.on_arm_state(ArmState(
-                header=new_header("sim", 0, 0), joint_names=list(arm.joint_names),
-                positions=arm.q_home.tolist(), velocities=[0.0] * len(arm.joint_names),
-                returning=returning), Delivery("a", b"", "", None, 0, 0))
+        def at_rest(stamp_s: float) -> None:
+            service.on_joint_states(Delivery("joint_states", encode_joint_state(
+                int(stamp_s * 1e9), [*names, "finger"], np.append(arm.q_home, 0.01),
+                np.append(np.zeros(n), 0.05)), "", None, 0, 0))
 
-        at_rest(True)
+        service.on_arm_trajectory(Delivery("arm", encode_joint_trajectory(
+            names, np.array([9.0, 10.5]), np.tile(arm.q_home, (2, 1)), np.zeros((2, n))),
+            "", None, 0, 0))
+        at_rest(9.9)  # its path ends at 10.5 (a finger moving is not the arm)
         service.plan(*delivered(prediction(10.0), 10.0))
         assert service.counters["skipped: executing"] == 1
-        at_rest(False)  # planned on: this service has no mount for the arm yet
+        at_rest(10.6)  # planned on: this service has no mount for the arm yet
         with pytest.raises(ValueError, match="no transform to the arm's mount"):
             service.plan(*delivered(prediction(10.0), 10.0))
         assert service.counters["skipped: executing"] == 1
+        with pytest.raises(ValueError, match="joint_states lacks joints"):
+            service.on_joint_states(Delivery("joint_states", encode_joint_state(
+                0, ["other"], np.zeros(1), np.zeros(1)), "", None, 0, 0))
     finally:
         service.bus.close()
 

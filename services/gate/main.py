@@ -7,7 +7,13 @@ also decides on the planner's updates of the executing plan and, at every camera
 the grasp time, watches it: past its limits (:meth:`Gate.watch`) it sends
 ``wavegrasp/gate/abort`` and the arm retreats. Each decision carries the
 plan's header plus the gate's hop, so its trace shows the whole chain from the camera frame.
-Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig`.
+It also commands the arm (:mod:`wavegrasp.gate.command`), in the types ros2_control's
+controllers take: every approved plan, update and abort, and the planner's standby moves of
+the idle arm (``wavegrasp/planner/standby``), as ``trajectory_msgs/msg/JointTrajectory`` for
+the arm's joint trajectory controller and for the jaw's (:class:`ArmTopics`), each sent
+before the decision or abort it carries out.
+Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig` and
+:class:`CommandConfig`.
 """
 
 from __future__ import annotations
@@ -17,12 +23,17 @@ import logging
 import sys
 import time
 
+from wavegrasp.arm import ArmModel
+from wavegrasp.arm.motion import Attempt, JointPath
+from wavegrasp.gate.command import CommandConfig, Commander
 from wavegrasp.gate.decision import Gate, GateConfig
+from wavegrasp.recording_io.ros_msgs import JOINT_TRAJECTORY, encode_joint_trajectory
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
-from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
+    ArmStandby,
     GateAbort,
     GateDecision,
     GraspOutcome,
@@ -36,11 +47,15 @@ DECISION_KEY = "wavegrasp/gate/decision"
 ABORT_KEY = "wavegrasp/gate/abort"
 
 
-class GateSettings(Settings, GateConfig):
-    """Bus settings plus every :class:`GateConfig` field (env ``WAVEGRASP_EPSILON_M``...)."""
+class GateSettings(Settings, GateConfig, CommandConfig, ArmTopics):
+    """Bus settings plus every :class:`GateConfig` and :class:`CommandConfig` field (env
+    ``WAVEGRASP_EPSILON_M``, ``WAVEGRASP_HOLD_S``...) and the arm's topics."""
 
     def gate_config(self) -> GateConfig:
         return GateConfig(**self.model_dump(include=set(GateConfig.model_fields)))
+
+    def command_config(self) -> CommandConfig:
+        return CommandConfig(**self.model_dump(include=set(CommandConfig.model_fields)))
 
 
 def plan_latency_s(plan: GraspPlan, now_wall_ns: int) -> float:
@@ -55,13 +70,18 @@ class GateService(Service):
     ack_after = "planner"
 
     def __init__(self, settings: GateSettings, bus: Bus | None = None) -> None:
+        arm = ArmModel.load(settings.arm_urdf or None)  # before the bus: fail cleanly
         super().__init__(settings, bus)
+        self.cfg = settings
         self.gate = Gate(settings.gate_config())
+        self.commander = Commander(arm, settings.command_config())
+        self._standby: ArmStandby | None = None  # asked for this frame
         self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction, MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
+        self.bus.subscribe("wavegrasp/planner/standby", self.on_standby, ArmStandby)
 
     def on_observation(self, msg: ObjectObservation, _d: Delivery) -> None:
         if self.gate.on_observation(msg) is not None:
@@ -74,8 +94,35 @@ class GateService(Service):
         self.counters["outcomes"] += 1
         self.gate.on_outcome(msg.plan_id)
 
+    def on_standby(self, msg: ArmStandby, _d: Delivery) -> None:
+        """Kept for the frame's end: a go in the same frame comes first."""
+        self._standby = msg
+
     def finish_frame(self, frame_seq: int) -> None:
         self.watch()
+        self.command_standby()
+
+    def command_standby(self) -> None:
+        msg, self._standby = self._standby, None
+        if msg is None:
+            return
+        s = msg.joint_trajectory
+        move = JointPath(list(msg.joint_names), [x.t_ns * 1e-9 for x in s],
+                         [x.positions for x in s],
+                         [x.velocities or [0.0] * len(msg.joint_names) for x in s])
+        path = self.commander.standby(move, self.clock.now_ns() * 1e-9)
+        if path is None:
+            self.counters["standby moves ignored: busy"] += 1
+            return
+        self.counters["standby moves"] += 1
+        self.send(path)
+
+    def send(self, arm: JointPath | None, jaw: JointPath | None = None) -> None:
+        """The arm's and the jaw's new paths to their controllers."""
+        for path, key in ((arm, self.cfg.arm_trajectory_key), (jaw, self.cfg.jaw_trajectory_key)):
+            if path is not None:
+                self.bus.publish_cdr(key, encode_joint_trajectory(
+                    path.names, path.times, path.q, path.qd), JOINT_TRAJECTORY)
 
     def on_tick(self) -> None:
         if self.settings.clock == "wall":  # a live vehicle's inputs may go silent between
@@ -90,6 +137,9 @@ class GateService(Service):
         self.counters["aborts"] += 1
         self.counters[f"abort: {kind}"] += 1
         log.info("abort %s: %s", plan_id, reason)
+        paths = self.commander.abort(self.clock.now_ns() * 1e-9)
+        if paths is not None:
+            self.send(*paths)
         self.bus.publish(ABORT_KEY, GateAbort(
             header=new_header(self.name, 0, self.clock.now_ns()), plan_id=plan_id,
             reason=reason, value=value, limit=limit))
@@ -103,6 +153,13 @@ class GateService(Service):
         latency_s = plan_latency_s(msg, time.time_ns()) * self.clock.rate
         try:
             decision = self.gate.decide(msg, now_ns, alive, latency_s, header=header)
+            if decision.go:
+                try:  # what the arm is to follow
+                    attempt = Attempt.from_message(msg, self.commander.names)
+                except ValueError:
+                    if msg.update_of is None:
+                        self.gate.on_outcome(msg.plan_id)  # not executing after all
+                    raise
         except ValueError as exc:  # a plan we cannot judge is a plan we do not run
             cfg = self.gate.config
             decision = GateDecision(
@@ -115,6 +172,8 @@ class GateService(Service):
             self.counters[f"no-go: {name}"] += 1
         if not decision.go:
             log.info("no-go %s: %s", msg.plan_id, decision.reason)
+        else:  # the arm's paths first: whoever sees the go finds them sent
+            self.send(*self.commander.grasp(attempt, update=msg.update_of is not None))
         self.bus.publish(DECISION_KEY, decision)
 
 

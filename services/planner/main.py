@@ -2,7 +2,9 @@
 
 For each warm ``wavegrasp/predictor/prediction`` while no approved plan is executing, plans a
 grasp (:func:`~wavegrasp.planner.plan.plan_grasp`) for the arm on its mount from ``tf_static``,
-starting from its latest ``wavegrasp/sim/arm_state`` (its home pose until one arrives), and
+starting from the arm's latest ``sensor_msgs/msg/JointState`` (``joint_states``; its home pose
+until one arrives) and never while the arm follows a commanded path (the gate's
+``JointTrajectory`` to the arm's controller, :class:`~wavegrasp.runtime.settings.ArmTopics`), and
 publishes it on ``wavegrasp/planner/plan``. When no grasp can be planned from where the idle arm
 is, it asks the arm to move to its standby first (``wavegrasp/planner/standby``). The last
 plan's grasp is tried first on the next prediction (:class:`~wavegrasp.planner.plan.Hint`),
@@ -34,14 +36,18 @@ from wavegrasp.planner.collision import Body, Turns
 from wavegrasp.planner.plan import Hint, Plan, PlannerConfig, plan_grasp
 from wavegrasp.planner.standby import standby_move, standby_poses
 from wavegrasp.planner.update import update_plan
-from wavegrasp.recording_io.ros_msgs import StaticTransforms, decode_tf
+from wavegrasp.recording_io.ros_msgs import (
+    StaticTransforms,
+    decode_joint_state,
+    decode_joint_trajectory,
+    decode_tf,
+)
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
-from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
     ArmStandby,
-    ArmState,
     GateAbort,
     GateDecision,
     GraspOutcome,
@@ -68,8 +74,7 @@ SWAY_SEEN_S = 4.0
 LONG = 1.5
 
 
-class PlannerSettings(Settings):
-    arm_urdf: str | None = None
+class PlannerSettings(Settings, ArmTopics):
     execution: Literal["closed", "open"] = Field("closed", description="closed: while an "
                                                  "approved plan executes, every new warm "
                                                  "prediction moves it (an update, "
@@ -140,7 +145,9 @@ class PlannerService(Service):
         self.config = PlannerConfig(closed_loop=settings.execution == "closed")
         self.tf = StaticTransforms()
         self.q_now = self.arm.q_home.copy()
-        self.arm_moving = False
+        self._arm_fast = False  # a joint of the arm moving, in its latest state
+        self._state_ns: int | None = None  # the latest state's stamp
+        self._commanded_until_ns = 0  # the end of the arm's commanded path
         self.body = Body(0.05)
         self.busy_until_ns = 0
         # The end of the standby move asked for last: no plan before it (the arm will not be
@@ -172,7 +179,8 @@ class PlannerService(Service):
         self._executing: tuple[str, Plan] | None = None
         self.bus.subscribe("tf_static", lambda d: self.tf.update(decode_tf(d.payload)))
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
-        self.bus.subscribe("wavegrasp/sim/arm_state", self.on_arm_state, ArmState)
+        self.bus.subscribe(settings.joint_states_key, self.on_joint_states)
+        self.bus.subscribe(settings.arm_trajectory_key, self.on_arm_trajectory)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
         self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
@@ -253,21 +261,31 @@ class PlannerService(Service):
         rotations = frames @ now.T
         return replace(self.body, turns=Turns(times, rotations, period_s))
 
-    def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
-        if len(msg.joint_names) != len(msg.positions):
-            raise ValueError(f"arm_state has {len(msg.joint_names)} joint_names but "
-                             f"{len(msg.positions)} positions")
-        by_name = dict(zip(msg.joint_names, msg.positions, strict=True))
-        missing = [n for n in self.arm.joint_names if n not in by_name]
+    def on_joint_states(self, d: Delivery) -> None:
+        stamp_ns, names, positions, velocities = decode_joint_state(d.payload)
+        missing = [n for n in self.arm.joint_names if n not in names]
         if missing:
-            raise ValueError(f"arm_state lacks joints {', '.join(missing)}")
-        self.q_now = np.array([by_name[n] for n in self.arm.joint_names])
-        # A plan starts from rest: none while the arm executes or returns to standby. Its
-        # return starts at rest: planned on from where the grasp left it, one prediction
-        # found nothing and asked for a standby move the returning arm ignored, and the
-        # planner waited out that move's 8 s while the trial ran out (random-191-000).
-        self.arm_moving = msg.executing_plan_id is not None or msg.returning or (
-            bool(msg.velocities) and max(abs(v) for v in msg.velocities) > 0.02)
+            raise ValueError(f"joint_states lacks joints {', '.join(missing)}")
+        index = [names.index(n) for n in self.arm.joint_names]
+        self.q_now = positions[index]
+        self._arm_fast = bool(np.abs(velocities[index]).max(initial=0.0) > 0.02)
+        self._state_ns = stamp_ns
+
+    def on_arm_trajectory(self, d: Delivery) -> None:
+        """The arm's commanded path (sent by the gate): no plan before its end."""
+        names, times, _q, _qd = decode_joint_trajectory(d.payload)
+        if sorted(names) != sorted(self.arm.joint_names):
+            raise ValueError(f"joint_names {names} are not the arm's {list(self.arm.joint_names)}")
+        self._commanded_until_ns = max(self._commanded_until_ns, int(round(times[-1] * 1e9)))
+
+    def arm_moving(self, now_ns: int) -> bool:
+        """A plan starts from rest: none while the arm follows a path or moves (as of its
+        latest state, else ``now_ns``). Its return to standby starts at rest: planned on
+        from where the grasp left it, one prediction found nothing and asked for a standby
+        move the returning arm ignored, and the planner waited out that move's 8 s while
+        the trial ran out (random-191-000)."""
+        at_ns = now_ns if self._state_ns is None else self._state_ns
+        return self._arm_fast or at_ns < self._commanded_until_ns
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         if msg.go:
@@ -360,7 +378,7 @@ class PlannerService(Service):
         if self._executing is not None and self.cfg.execution == "closed" and msg.warm:
             self.update(msg, d)
             return
-        if msg.header.stamp_ns < self.busy_until_ns or self.arm_moving:
+        if msg.header.stamp_ns < self.busy_until_ns or self.arm_moving(msg.header.stamp_ns):
             self.counters["skipped: warming up" if not msg.warm else "skipped: executing"] += 1
             self._failing_since_ns = None
             return

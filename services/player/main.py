@@ -42,6 +42,7 @@ from wavegrasp.recording_io.reader import (
     RecordingError,
     open_for_replay,
 )
+from wavegrasp.recording_io.ros_msgs import ROS_CLOCK, encode_clock
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
@@ -69,6 +70,10 @@ class PlayerSettings(Settings):
     ack_timeout_s: float = Field(30.0, gt=0)
     clock_period_s: float = Field(0.1, ge=0, description="least recording time between "
                                   "clock ticks, besides the one before every camera frame")
+    ros_clock_key: str = Field("clock", description="each tick also goes here as "
+                               "rosgraph_msgs/msg/Clock, the time of ROS 2 nodes with "
+                               "use_sim_time (a real arm's controllers during a replay); "
+                               "empty: not sent")
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
     wait_timeout_s: float = Field(30.0, gt=0)
@@ -131,6 +136,8 @@ class Player(Service):
         self.bus.publish(CLOCK_KEY, Clock(
             header=new_header(self.name, self._clock_seq, stamp_ns), rate=rate,
             published=self.bus.published()))
+        if self.cfg.ros_clock_key:
+            self.bus.publish_cdr(self.cfg.ros_clock_key, encode_clock(stamp_ns), ROS_CLOCK)
 
     def resume_point(self) -> int | None:
         """The log time the last run of this player got to on this recording (None: start

@@ -90,3 +90,24 @@ class Settings(BaseModel):
             field = str(first["loc"][0]) if first["loc"] else "?"
             var = field.upper() if field.startswith("zenoh_") else f"WAVEGRASP_{field.upper()}"
             raise ValueError(f"setting {field} (env {var}): {first['msg']}") from None
+
+
+class ArmTopics(BaseModel):
+    """Where the arm is commanded and reports, as ros2_control's controllers name their
+    topics (zenoh-bridge-ros2dds maps ``/a/b`` to the key ``a/b``): the commander (the gate)
+    sends, the arm (the sim, or a real one behind a bridge) follows and reports, the planner
+    reads both."""
+
+    arm_urdf: str | None = Field(None, description="the arm's URDF (default: wavegrasp's "
+                                 "Bravo-7-like model)")
+    arm_trajectory_key: str = Field(
+        "arm/joint_trajectory_controller/joint_trajectory", description="the arm's "
+        "trajectory_msgs/msg/JointTrajectory: approved plans, updates, aborts and standby "
+        "moves, each replacing what was commanded from its first point on")
+    jaw_trajectory_key: str = Field(
+        "jaw/joint_trajectory_controller/joint_trajectory", description="the jaw's finger "
+        "joints' trajectory_msgs/msg/JointTrajectory: open, narrowed for the final move, "
+        "closed, opened again")
+    joint_states_key: str = Field("joint_states", description="the arm's and fingers' "
+                                  "sensor_msgs/msg/JointState (ros2_control's joint state "
+                                  "broadcaster's topic)")

@@ -1,4 +1,9 @@
-"""Execute an approved plan in the simulated scene and judge the grasp physically.
+"""Follow the arm's commanded paths in the simulated scene and judge each attempt physically.
+
+The arm and the jaw follow the paths their controllers are sent (:meth:`Executor.follow`: a
+joint trajectory controller's way, each new path replacing the rest from its first sample);
+the judge knows of an attempt only from the approved plan (:meth:`Executor.start`), the
+gate's abort and its updates, as an observer beside the tank would.
 
 Rules (the README lists them too):
 
@@ -30,10 +35,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, Field
 
-from wavegrasp.planner.timing import Limits, sample_segment, segment
-from wavegrasp.schemas import GraspPlan
+from wavegrasp.arm.motion import Attempt, JointPath
 from wavegrasp.schemas.path import interpolate_path
 from wavegrasp.sim.world import SimWorld
+
+__all__ = ["Attempt", "Executor", "JudgeConfig", "Result"]
 
 
 class JudgeConfig(BaseModel):
@@ -43,62 +49,6 @@ class JudgeConfig(BaseModel):
     pass_tol_m: float = 0.015
     timing_window_s: float = 0.5
     abrupt_m: float = 0.02
-    closed_m: float = Field(0.0, description="the jaw's commanded opening when closing")
-    retreat_m: float = Field(0.08, description="an aborted attempt backs the tool out this "
-                             "far along its approach before it returns to standby")
-
-
-@dataclass
-class Attempt:
-    """An approved plan: times (k,) s; q, qd (k, n) rad, rad/s; grasp point p_f (3,);
-    final_from: when the final move, into P_f, begins; the jaw narrows to ``jaw_preshape_m``
-    for the final move and starts closing at ``t_close`` (so it meets the object at the
-    grasp time rather than a third of a second later)."""
-
-    plan_id: str
-    times: np.ndarray
-    q: np.ndarray
-    qd: np.ndarray
-    t_grasp: float
-    p_f: np.ndarray
-    final_from: float
-    jaw_preshape_m: float
-    t_close: float
-    #: The prediction the plan came from: times (m,) s and positions (m, 3); and when the
-    #: plan was approved (recording s). Without them abrupt changes are not told apart.
-    predicted: tuple[np.ndarray, np.ndarray] | None = None
-    approved_at: float | None = None
-    #: Where the arm waits after the attempt, shape (n,), radians; None: its home pose.
-    standby: np.ndarray | None = None
-
-    @classmethod
-    def from_message(cls, plan: GraspPlan, joint_names: list[str]) -> Attempt:
-        """From ``wavegrasp/planner/plan``; raises ValueError naming what is missing."""
-        if not plan.joint_trajectory:
-            raise ValueError(f"plan {plan.plan_id}: no joint_trajectory")
-        if plan.joint_names != joint_names:
-            raise ValueError(f"plan {plan.plan_id}: joint_names {plan.joint_names} are not "
-                             f"the arm's {joint_names}")
-        s = plan.joint_trajectory
-        for k, sample in enumerate(s):
-            for name in ("positions", "velocities"):  # velocities may be left out
-                n = len(getattr(sample, name))
-                if n != len(joint_names) and (n or name == "positions"):
-                    raise ValueError(f"plan {plan.plan_id}: joint_trajectory sample {k} has {n} "
-                                     f"{name}, the arm {len(joint_names)} joints")
-        if plan.standby and len(plan.standby) != len(joint_names):
-            raise ValueError(f"plan {plan.plan_id}: standby has {len(plan.standby)} positions, "
-                             f"the arm {len(joint_names)} joints")
-        t_grasp = plan.t_grasp_ns * 1e-9
-        p = plan.grasp.position
-        return cls(plan.plan_id, np.array([x.t_ns for x in s]) * 1e-9,
-                   np.array([x.positions for x in s]),
-                   np.array([x.velocities or [0.0] * len(joint_names) for x in s]), t_grasp,
-                   np.array([p.x, p.y, p.z]),
-                   (plan.t_final_ns or plan.t_grasp_ns) * 1e-9,
-                   plan.jaw_preshape_m or 0.0,
-                   (plan.t_close_ns or plan.t_grasp_ns) * 1e-9,
-                   standby=np.array(plan.standby) if plan.standby else None)
 
 
 @dataclass
@@ -111,16 +61,18 @@ class Result:
 
 
 class Executor:
-    """Runs one attempt at a time in ``world``; :meth:`advance` moves everything to a time."""
+    """Follows the commanded paths in ``world`` and judges one attempt at a time;
+    :meth:`advance` moves everything to a time."""
 
     def __init__(self, world: SimWorld, cfg: JudgeConfig | None = None) -> None:
         self.world, self.cfg = world, cfg or JudgeConfig()
         self.attempt: Attempt | None = None
+        self.arm_path: JointPath | None = None
+        self.jaw_path: JointPath | None = None
+        self._jaw_target: np.ndarray | None = None
         self._truth: list[tuple[float, np.ndarray]] = []
         self._touched: dict[str, float] = {}
         self._tool_at_grasp: np.ndarray | None = None
-        self._closing = self._preshaped = False
-        self._return: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._started_at = 0.0
         names = world.link_names
         self._finger_names = {names[i] for i in world.finger_links}
@@ -133,41 +85,68 @@ class Executor:
 
     @property
     def busy(self) -> bool:
-        """Executing an attempt or returning to standby."""
-        return self.attempt is not None or self._return is not None
+        """Judging an attempt or following a path."""
+        return self.attempt is not None or self.moving
+
+    @property
+    def moving(self) -> bool:
+        """Following a commanded path not at its end yet."""
+        return self.arm_path is not None and self.world.time_s < self.arm_path.end_s
 
     @property
     def returning(self) -> bool:
-        """Moving to a standby pose, after an attempt or as the planner asked."""
-        return self._return is not None
+        """Moving with no attempt judged: back to standby, or as the planner asked."""
+        return self.attempt is None and self.moving
+
+    def follow(self, path: JointPath) -> None:
+        """Take a new path for the arm's joints or the jaw's (by its names), replacing the
+        one followed from its first sample on; raises ValueError for other joints."""
+        arm = self.world.arm
+        if path.names == list(arm.joint_names):
+            self.arm_path = path if self.arm_path is None else self.arm_path.then(path)
+        elif path.names == list(arm.jaw_joints):
+            self.jaw_path = path if self.jaw_path is None else self.jaw_path.then(path)
+            self._move_jaw()
+        else:
+            raise ValueError(f"joint names {path.names} are neither the arm's "
+                             f"{list(arm.joint_names)} nor the jaw's {list(arm.jaw_joints)}")
+
+    def _move_jaw(self) -> None:
+        """Head the fingers where the jaw's path heads now (they move at their own speed)."""
+        if self.jaw_path is None:
+            return
+        target = self.jaw_path.heading(self.world.time_s)
+        if self._jaw_target is None or not np.array_equal(target, self._jaw_target):
+            self.world.set_fingers(target)
+            self._jaw_target = target
 
     def start(self, attempt: Attempt) -> None:
-        if self.busy:
-            raise ValueError(f"plan {attempt.plan_id}: another is executing")
+        """Judge ``attempt`` (the arm follows what its controller is sent)."""
+        if self.attempt is not None:
+            raise ValueError(f"plan {attempt.plan_id}: {self.attempt.plan_id} is judged")
         self.attempt = attempt
         self._started_at = self.world.time_s  # approved (updates do not move it)
         self._truth, self._touched = [], {}
-        self._tool_at_grasp, self._closing, self._preshaped = None, False, False
-        self.world.set_jaw(self.world.arm.jaw_max_opening_m)
+        self._tool_at_grasp = None
         self.world.tether_touches()  # those on the way back from the last attempt are not its
 
     def advance(self, t_s: float, position: np.ndarray, quat_xyzw: np.ndarray) -> Result | None:
-        """Drive the object to its pose at ``t_s``, the arm along its plan, step the world to
+        """Drive the object to its pose at ``t_s``, the arm along its path, step the world to
         ``t_s``; returns the attempt's result once it is judged."""
         w = self.world
         w.drive_object(position, quat_xyzw)
         a = self.attempt
         w.watch_tether = a is not None and w.time_s < a.t_grasp  # read below only then
-        if a is None:
-            self._follow_return(t_s)
-            w.step_to(t_s)
-            return None
-        self._truth.append((t_s, position.copy()))
-        if t_s <= a.times[-1]:
-            k = min(max(np.searchsorted(a.times, t_s), 0), len(a.times) - 1)
-            q = np.array([np.interp(t_s, a.times, a.q[:, j]) for j in range(a.q.shape[1])])
-            w.command_arm(q, a.qd[k] if a.times[0] <= t_s < a.times[-1] else np.zeros(len(q)))
+        if self.arm_path is not None:
+            w.command_arm(*self.arm_path.at(t_s))
         w.step_to(t_s)
+        result = None if a is None else self._watch(a, t_s, position)
+        self._move_jaw()  # after the judging: the jaw opens once the grasp was held
+        return result
+
+    def _watch(self, a: Attempt, t_s: float, position: np.ndarray) -> Result | None:
+        w = self.world
+        self._truth.append((t_s, position.copy()))
         if w.time_s < a.t_grasp:
             for link in w.contacts():
                 name = self._names[link]
@@ -177,19 +156,11 @@ class Executor:
             for link in w.tether_touches():
                 self._touched.setdefault(f"{self._names[link]} on the tether",
                                          a.t_grasp - w.time_s)
-        # A jaw that began closing before its final move keeps closing: the preshape is for
-        # a jaw still open wide, and reopening it there let the object swing through.
-        if (not self._preshaped and not self._closing and a.jaw_preshape_m > 0
-                and w.time_s >= a.final_from):
-            w.set_jaw(a.jaw_preshape_m)
-            self._preshaped = True
-        if not self._closing and w.time_s >= a.t_close:
-            w.set_jaw(self.cfg.closed_m)
-            self._closing = True
         if self._tool_at_grasp is None and w.time_s >= a.t_grasp:
             self._tool_at_grasp = w.tool_position()
         if w.time_s >= a.t_grasp + self.cfg.settle_s + self.cfg.hold_s:
-            return self._finish(self._judge())
+            result, self.attempt = self._judge(), None
+            return result
         return None
 
     def _judge(self) -> Result:
@@ -250,74 +221,21 @@ class Executor:
                                                   - a.approved_at)}
 
     def splice(self, update: Attempt, update_of: str) -> None:
-        """Closed loop: from its first sample's time on, follow ``update``'s trajectory
-        instead (the executing plan ``update_of`` moved to a newer prediction), towards its
-        grasp point; raises ValueError if that plan is not the one executing."""
+        """Closed loop: judge the executing plan ``update_of`` by ``update`` from now on (its
+        grasp point, times and prediction; the arm follows the update's path as sent); raises
+        ValueError if that plan is not the one executing."""
         a = self.attempt
         if a is None or a.plan_id != update_of:
             raise ValueError(f"update {update.plan_id}: plan {update_of} is not executing")
-        keep = a.times < update.times[0] - 1e-9
-        a.times = np.concatenate([a.times[keep], update.times])
-        a.q, a.qd = np.vstack([a.q[keep], update.q]), np.vstack([a.qd[keep], update.qd])
         a.p_f, a.t_close, a.final_from = update.p_f, update.t_close, update.final_from
         if update.predicted is not None:  # judged against the prediction it follows now
             a.predicted, a.approved_at = update.predicted, self.world.time_s
 
     def abort(self, reason: str) -> Result:
-        """Stop the attempt as the gate asked: open the jaw, back out along the approach
-        and return to standby."""
+        """The gate stopped the attempt (the arm backs out as its commander sends it)."""
         a = self.attempt
         assert a is not None
-        return self._finish(Result(a.plan_id, False, None, {
-            "reason": reason, "before_grasp_s": a.t_grasp - self.world.time_s,
-            "approval_to_grasp_s": a.t_grasp - self._started_at}, aborted=True),
-            back_m=self.cfg.retreat_m)
-
-    def _finish(self, result: Result, back_m: float = 0.0) -> Result:
-        """Open the jaw and head back to standby (ruckig, from the arm's state), first
-        ``back_m`` metres back along the approach if that is reachable."""
-        w, arm = self.world, self.world.arm
-        standby = arm.q_home if self.attempt is None or self.attempt.standby is None else \
-            np.clip(self.attempt.standby, arm.lower, arm.upper)
         self.attempt = None
-        w.set_jaw(arm.jaw_max_opening_m)
-        q, qd = w.arm_q()
-        limits = Limits(arm.max_velocity, arm.max_acceleration, arm.max_jerk)
-        zero = np.zeros(len(q))
-        stops = [standby]
-        if back_m > 0:
-            T = arm.forward(q)
-            T[:3, 3] -= back_m * T[:3, 2]
-            q_back = arm.inverse(T, q)
-            stops = [standby] if q_back is None else [q_back, standby]
-        t, pieces = w.time_s, []
-        for target in stops:
-            move = segment(q, np.clip(qd, -limits.velocity, limits.velocity), zero, target,
-                           zero, limits)
-            if move is None:
-                break
-            piece = sample_segment(move, t, 0.02)
-            pieces.append(tuple(x[1:] for x in piece) if pieces else piece)  # joined once
-            t, q, qd = piece[0][-1], target, zero
-        if pieces:
-            self._return = tuple(np.concatenate(x) for x in zip(*pieces, strict=True))
-        return result
-
-    def go_to_standby(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray) -> None:
-        """Follow a timed move of the idle arm (times (k,) s, q and qd (k, n)), as after an
-        attempt; raises ValueError while it executes or returns."""
-        if self.busy:
-            raise ValueError("the arm is executing or returning to standby")
-        self._return = (times, q, qd)
-
-    def _follow_return(self, t_s: float) -> None:
-        if self._return is None:
-            return
-        times, q, qd = self._return
-        if t_s >= times[-1]:
-            self.world.command_arm(q[-1], np.zeros(q.shape[1]))
-            self._return = None
-            return
-        k = int(np.searchsorted(times, t_s))
-        self.world.command_arm(np.array([np.interp(t_s, times, q[:, j])
-                                         for j in range(q.shape[1])]), qd[k])
+        return Result(a.plan_id, False, None, {
+            "reason": reason, "before_grasp_s": a.t_grasp - self.world.time_s,
+            "approval_to_grasp_s": a.t_grasp - self._started_at}, aborted=True)

@@ -1,4 +1,4 @@
-"""``wavegrasp sim``: PyBullet executes approved plans on the recording's clock.
+"""``wavegrasp sim``: PyBullet stands in for the arm and the world, on the recording's clock.
 
 The arm (ours, or ``WAVEGRASP_ARM_URDF``) stands on its mount from ``tf_static``; the object,
 the recording's own where its metadata holds its scenario (a generated recording: the sim
@@ -6,12 +6,17 @@ stands in for the world), else a sphere or a cylinder of the size perception rep
 perception's mesh arrives (applied between attempts), on its tether to the seabed, follows
 ``groundtruth/object`` (or, in a recording without ground truth, the tracked centroid)
 through a bounded-force drive.
-A ``go`` from the gate starts the plan; the jaw closes at the grasp time; the grasp is
-judged physically (:mod:`wavegrasp.sim.executor`) and published on ``wavegrasp/sim/outcome``
-with the next camera frame's acknowledgement; the arm returns to standby and the pipeline
-tries again, up to ``attempts`` per trial.
-``wavegrasp/sim/arm_state`` is published once a camera frame, and the joints' state as a
-ros2_control arm's driver publishes it: ``sensor_msgs/msg/JointState`` on ``joint_states``.
+The arm is driven the way ros2_control drives one, and only so: it follows the
+``trajectory_msgs/msg/JointTrajectory`` sent to its joint trajectory controller and to its
+jaw's (:class:`~wavegrasp.runtime.settings.ArmTopics`; the gate commands them), each taking
+effect at the end of the camera frame it came in, and publishes its joints and fingers as
+``sensor_msgs/msg/JointState`` on ``joint_states`` once a camera frame; a real arm behind
+zenoh-bridge-ros2dds takes its place unchanged.
+The judge beside it reads what an observer of the tank would: a ``go`` from the gate starts an
+attempt of the approved plan, judged physically (:mod:`wavegrasp.sim.executor`) and published
+on ``wavegrasp/sim/outcome`` with the next camera frame's acknowledgement; the pipeline tries
+again, up to ``attempts`` per trial. ``wavegrasp/sim/arm_state`` (the joints and the attempt
+judged) is published once a camera frame too.
 """
 
 from __future__ import annotations
@@ -28,20 +33,21 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from wavegrasp.arm import ArmModel
+from wavegrasp.arm.motion import JointPath
 from wavegrasp.recording_io.ros_msgs import (
     JOINT_STATE,
     StaticTransforms,
+    decode_joint_trajectory,
     decode_pose_quaternion,
     decode_tf,
     encode_joint_state,
 )
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.service import Service, setup_logging
-from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import (
-    ArmStandby,
     ArmState,
     FrameAck,
     GateAbort,
@@ -72,8 +78,7 @@ MAX_AHEAD_S = 1.0
 PLAN_WAIT_S = 2.0
 
 
-class SimSettings(Settings):
-    arm_urdf: str | None = None
+class SimSettings(Settings, ArmTopics):
     gui: bool = False
     trials: int = Field(1, ge=1, description="trials in this run, one after the other")
     attempts: int = Field(3, ge=1, description="attempts a trial at most")
@@ -81,9 +86,6 @@ class SimSettings(Settings):
                                    "this long (recording seconds) after it began or after "
                                    "its last attempt ends as a failure")
     drive_force_n: float = 5.0
-    joint_states_key: str = Field("joint_states", description="where the arm's joints and "
-                                  "fingers go each camera frame as sensor_msgs/msg/JointState "
-                                  "(ros2_control's joint state broadcaster's topic)")
     tether: bool = Field(True, description="a tether from the object's lower end to the "
                          "seabed, which the arm must not touch")
     stop_after_trials: bool = Field(False, description="exit once the last trial has ended "
@@ -118,7 +120,7 @@ class SimService(Service):
         self._go: Attempt | None = None  # approved this frame, not started yet
         self._splice: tuple[str, Attempt] | None = None  # an update approved this frame
         self._abort: GateAbort | None = None  # the gate's abort this frame
-        self._standby: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # asked for
+        self._paths: list[JointPath] = []  # sent to the arm's controllers this frame
         self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
         self._plans_flow = False  # a warm prediction or a decision has come: trials begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
@@ -132,7 +134,8 @@ class SimService(Service):
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction,
                            MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)
-        self.bus.subscribe("wavegrasp/planner/standby", self.on_standby, ArmStandby)
+        self.bus.subscribe(settings.arm_trajectory_key, self.on_trajectory)
+        self.bus.subscribe(settings.jaw_trajectory_key, self.on_trajectory)
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
         self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
         self.bus.subscribe("wavegrasp/player/status", self.on_player_status, PlayerStatus)
@@ -268,30 +271,27 @@ class SimService(Service):
             self.approve(msg)
             self.release_frames()
 
-    def on_standby(self, msg: ArmStandby, _d: Delivery) -> None:
-        """Kept for the frame's end, like an approval: a timed move, so whichever frame it
-        comes in before its start, the arm moves alike."""
-        if msg.joint_names != list(self.arm.joint_names):
-            raise ValueError(f"standby joint_names {msg.joint_names} are not the arm's "
-                             f"{list(self.arm.joint_names)}")
-        s = msg.joint_trajectory
-        if len(s) < 2 or any(len(x.positions) != len(msg.joint_names) for x in s):
-            raise ValueError(f"standby joint_trajectory needs 2 or more samples, each of "
-                             f"{len(msg.joint_names)} positions")
-        if any(b.t_ns <= a.t_ns for a, b in zip(s, s[1:], strict=False)):
-            raise ValueError("standby joint_trajectory t_ns not strictly increasing")
-        self._standby = (np.array([x.t_ns for x in s]) * 1e-9, np.array([x.positions for x in s]),
-                         np.array([x.velocities or [0.0] * len(msg.joint_names) for x in s]))
+    def on_trajectory(self, d: Delivery) -> None:
+        """A path for the arm's or the jaw's controller, followed from the frame's end (so
+        whichever moment of the frame it comes in, the arm moves alike). Its joints may come
+        in any order; they must be all of the arm's, or all of the jaw's."""
+        names, times, q, qd = decode_joint_trajectory(d.payload)
+        for own in (list(self.arm.joint_names), list(self.arm.jaw_joints)):
+            if sorted(names) == sorted(own):
+                order = [names.index(n) for n in own]
+                self._paths.append(JointPath(own, times, q[:, order], qd[:, order]))
+                return
+        raise ValueError(f"joint_names {names} are neither the arm's "
+                         f"{list(self.arm.joint_names)} nor the jaw's {list(self.arm.jaw_joints)}")
 
-    def start_standby(self) -> None:
-        move, self._standby = self._standby, None
-        if move is None or self.executor is None:
-            return
-        if self.executor.busy or self._go is not None:
-            self.counters["standby moves ignored: busy"] += 1
-            return
-        self.executor.go_to_standby(*move)
-        self.counters["standby moves"] += 1
+    def follow_paths(self) -> None:
+        paths, self._paths = self._paths, []
+        for path in paths:
+            if self.executor is None:
+                self.counters["paths ignored: no scene yet"] += 1
+                continue
+            self.executor.follow(path)
+            self.counters["paths followed"] += 1
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         self._plans_flow = True  # trial 0 begins at this frame's end
@@ -316,8 +316,8 @@ class SimService(Service):
                            f"decision for plan {plan_id} that never arrived")
 
     def approve(self, plan: GraspPlan) -> None:
-        """Take an approved plan, or an update of the executing one; it starts (is spliced
-        in) at the end of the frame (below)."""
+        """Judge an approved plan, or an update of the one judged, from the end of the frame
+        (below)."""
         attempt = Attempt.from_message(plan, self.arm.joint_names)
         attempt.predicted = self.predictions.get(plan.header.seq)
         if plan.update_of is not None:
@@ -330,8 +330,8 @@ class SimService(Service):
         self._abort = msg
 
     def apply_abort_and_update(self) -> None:
-        """At the frame's end: the gate's abort of the executing attempt (it retreats), else
-        an approved update of it (spliced in)."""
+        """At the frame's end: the gate's abort of the attempt judged (it ends, aborted; the
+        arm backs out as commanded), else an approved update of it (judged by it from now)."""
         abort, self._abort = self._abort, None
         splice, self._splice = self._splice, None
         attempt = self.executor.attempt if self.executor is not None else None
@@ -359,7 +359,7 @@ class SimService(Service):
         if self.trial >= self.cfg.trials:
             self.counters["ignored: trials over"] += 1
             return
-        if self.executor is None or self.executor.busy:
+        if self.executor is None or self.executor.attempt is not None:
             self.counters["ignored: busy" if self.executor else "ignored: no scene yet"] += 1
             return
         attempt.approved_at = self.world.time_s
@@ -447,9 +447,9 @@ class SimService(Service):
         self._results.clear()
         if self._idle_since is None and self._plans_flow:  # trial 0 begins
             self._idle_since = self.world.time_s
+        self.follow_paths()
         self.start_attempt()
         self.apply_abort_and_update()
-        self.start_standby()
         if self.executor is not None:
             self.check_trial_timeout()
             if self._mesh is not None and not self.executor.busy:

@@ -207,9 +207,14 @@ class SimWorld:
 
     def set_jaw(self, opening_m: float) -> None:
         """Drive the fingers towards a gap of ``opening_m`` at their speed and force limits."""
+        self.set_fingers(np.full(len(self.fingers), opening_m / len(self.fingers)))
+
+    def set_fingers(self, positions: np.ndarray) -> None:
+        """Drive each finger joint towards its position (m; shape (f,), ``arm.jaw_joints``'
+        order, within their limits) at its speed and force limits."""
         for k, index in enumerate(self.fingers):
             lim = self.arm.joints[self.arm.jaw_joints[k]]
-            target = float(np.clip(opening_m / len(self.fingers), lim.lower, lim.upper))
+            target = float(np.clip(positions[k], lim.lower, lim.upper))
             pb.setJointMotorControl2(self.robot, index, pb.POSITION_CONTROL, target,
                                      force=self._effort[len(self.joints) + k],
                                      maxVelocity=lim.max_velocity, physicsClientId=self.client)
