@@ -58,14 +58,16 @@ def test_an_approved_plan_is_followed_held_then_returned_with_the_jaw_timed(arm)
     assert commander.busy(a.t_grasp + 1.0) and not commander.busy(path.end_s + 0.01)
 
 
-def test_an_update_replaces_the_rest_and_does_not_reopen_a_narrowed_jaw(arm) -> None:
+def test_an_update_replaces_the_rest_keeps_the_standby_and_does_not_reopen_the_jaw(arm) -> None:
     commander = Commander(arm)
     a = attempt(arm)
     commander.grasp(a)
     update = attempt(arm, T0 + 1.6, "u")  # begins after the jaw narrowed
     update.times, update.q, update.qd = update.times[:6], update.q[:6], update.qd[:6]
     update.t_grasp, update.final_from, update.t_close = T0 + 2.1, T0 + 1.7, T0 + 1.9
+    update.standby = arm.q_home - 0.1  # solved anew since: the approved plan's still holds
     path, jaw = commander.grasp(update, update=True)
+    np.testing.assert_allclose(path.q[-1], a.standby, atol=1e-9)
     spliced = commander.arm_path
     np.testing.assert_allclose(spliced.at(T0 + 1.0)[0], a.path(path.names).at(T0 + 1.0)[0])
     np.testing.assert_allclose(spliced.at(T0 + 1.65)[0], update.path(path.names).at(T0 + 1.65)[0])

@@ -308,7 +308,7 @@ def test_gate_service_on_an_isolated_bus() -> None:
         assert [h.service for h in d.header.trace] == ["source", "gate"]
         assert d.header.stamp_ns == ns(3.0) and d.header.trace[-1].sent_ns > 0
         assert not bad.go and bad.reason.startswith("bad plan: plan bad: t_grasp_ns before")
-        # The go's paths went to the arm's and the jaw's controllers before the go itself.
+        # The go's paths went to the arm's and the jaw's controllers.
         assert [key for key, _ in commanded] == [settings.arm_trajectory_key,
                                                  settings.jaw_trajectory_key]
         (arm_names, times, _q, _qd), (jaw_names, jaw_times, _, _) = (x for _, x in commanded)

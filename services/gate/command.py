@@ -53,13 +53,14 @@ class Commander:
         arm's path and the jaw's, replacing what was commanded from the plan's first sample
         on. A jaw already narrowed or closing is not opened again by an update."""
         plan = attempt.path(self.names)
-        self.standby_q = attempt.standby
+        if not update:  # an update's return goes where its plan's went
+            self.standby_q = attempt.standby
         t0, t_end = plan.times[0], max(attempt.t_grasp + self.cfg.hold_s, plan.end_s)
         if t_end > plan.end_s:  # hold the grasp
             plan = plan.then(JointPath(self.names, [t_end], [plan.q[-1]],
                                        [np.zeros(len(self.names))]))
         back = self.back_to_standby(plan.q[-1], np.zeros(len(self.names)), t_end,
-                                    attempt.standby)
+                                    self.standby_q)
         path = plan.then(back) if back is not None else plan
         wide, closed = self.arm.jaw_max_opening_m, self.cfg.closed_m
         now = wide if not update or self.jaw_path is None else \

@@ -10,8 +10,8 @@ plan's header plus the gate's hop, so its trace shows the whole chain from the c
 It also commands the arm (:mod:`wavegrasp.gate.command`), in the types ros2_control's
 controllers take: every approved plan, update and abort, and the planner's standby moves of
 the idle arm (``wavegrasp/planner/standby``), as ``trajectory_msgs/msg/JointTrajectory`` for
-the arm's joint trajectory controller and for the jaw's (:class:`ArmTopics`), each sent
-before the decision or abort it carries out.
+the arm's joint trajectory controller and for the jaw's (:class:`ArmTopics`), each sent right
+after the decision it carries out (before the abort).
 Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig` and
 :class:`CommandConfig`.
 """
@@ -172,9 +172,9 @@ class GateService(Service):
             self.counters[f"no-go: {name}"] += 1
         if not decision.go:
             log.info("no-go %s: %s", msg.plan_id, decision.reason)
-        else:  # the arm's paths first: whoever sees the go finds them sent
-            self.send(*self.commander.grasp(attempt, update=msg.update_of is not None))
         self.bus.publish(DECISION_KEY, decision)
+        if decision.go:  # its paths right after it (they start later: t_start is ahead)
+            self.send(*self.commander.grasp(attempt, update=msg.update_of is not None))
 
 
 def main(argv: list[str] | None = None) -> int:
