@@ -128,3 +128,56 @@ def test_a_path_travels_as_a_joint_trajectory(arm) -> None:
     with pytest.raises(ValueError, match="no points"):
         decode_joint_trajectory(encode_joint_trajectory([], np.zeros(0), np.zeros((0, 0)),
                                                         np.zeros((0, 0))))
+
+
+def rosbags_trajectory(stamp_ns: int, frame_id: str, names: list[str], from_start_ns: list[int],
+                       arrays: list[list[np.ndarray]]) -> bytes:
+    """The same message serialised by rosbags: arrays per point are positions, velocities,
+    accelerations, effort."""
+    from wavegrasp.recording_io.typestore import ros2_typestore
+
+    store = ros2_typestore()
+    t = store.types
+    points = [t["trajectory_msgs/msg/JointTrajectoryPoint"](
+        positions=a[0], velocities=a[1], accelerations=a[2], effort=a[3],
+        time_from_start=t["builtin_interfaces/msg/Duration"](sec=d // 10**9, nanosec=d % 10**9))
+        for d, a in zip(from_start_ns, arrays, strict=True)]
+    msg = t["trajectory_msgs/msg/JointTrajectory"](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+            sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=frame_id),
+        joint_names=names, points=points)
+    return bytes(store.serialize_cdr(msg, "trajectory_msgs/msg/JointTrajectory"))
+
+
+def test_trajectories_are_written_and_read_byte_for_byte_as_rosbags_does() -> None:
+    from wavegrasp.recording_io.trajectory_cdr import parse_joint_trajectory
+
+    rng = np.random.default_rng(3)
+    for case in range(40):
+        n, k = int(rng.integers(1, 8)), int(rng.integers(1, 30))
+        names = ["j" * int(rng.integers(1, 9)) + str(i) for i in range(n)]
+        stamp = int(rng.integers(0, 2**31)) * 10**9 + int(rng.integers(0, 10**9))
+        steps = rng.integers(1, 10**8, k)
+        steps[0] = 0
+        from_start = np.cumsum(steps).tolist()
+        q, qd = rng.normal(size=(k, n)), rng.normal(size=(k, n))
+        times = (stamp + np.array(from_start)) * 1e-9
+        ours = encode_joint_trajectory(names, times, q, qd)
+        stamp_s = int(round(times[0] * 1e9))  # as ours rounds it
+        theirs = rosbags_trajectory(stamp_s, "", names, [int(round(t * 1e9)) - stamp_s
+                                                         for t in times],
+                                    [[q[i], qd[i], np.zeros(0), np.zeros(0)] for i in range(k)])
+        assert ours == theirs, case
+        # rosbags' bytes with every array filled, a frame and no velocities read alike
+        full = [[q[i], np.zeros(0) if case % 2 else qd[i], q[i] * 2, q[i] * 3]
+                for i in range(k)]
+        msg = parse_joint_trajectory(rosbags_trajectory(stamp, "base" * (case % 3), names,
+                                                        from_start, full))
+        assert (msg.stamp_ns, msg.frame_id, msg.names) == (stamp, "base" * (case % 3), names)
+        assert msg.from_start_ns == from_start
+        np.testing.assert_array_equal(np.array(msg.positions), q)
+        got = decode_joint_trajectory(rosbags_trajectory(stamp, "", names, from_start, full))
+        np.testing.assert_array_equal(got[3], 0.0 if case % 2 else qd)
+    for n in range(len(ours)):  # every truncation is refused, naming the type
+        with pytest.raises(ValueError, match="not a valid trajectory_msgs/msg/JointTrajectory"):
+            parse_joint_trajectory(ours[:n])

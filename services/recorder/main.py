@@ -46,6 +46,7 @@ from wavegrasp.recording_io.ros_msgs import (
     decode_pose,
     decode_tf,
 )
+from wavegrasp.recording_io.trajectory_cdr import JOINT_TRAJECTORY, parse_joint_trajectory
 from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
@@ -231,6 +232,19 @@ class Recorder(Service):
             T, _frame, stamp_ns = decode_pose(d.payload)
             r.truth(stamp_ns, T[:3, 3])
 
+    def check_cdr(self, d: Delivery, msgtype: str) -> None:
+        """Raise BadMessage unless ``d`` is well-formed CDR of ``msgtype``."""
+        if msgtype == JOINT_TRAJECTORY:  # rosbags reads a trajectory's points one by one
+            try:
+                parse_joint_trajectory(d.payload)
+            except ValueError as exc:
+                raise BadMessage(f"{d.key}: {exc}") from None
+            return
+        try:
+            self._typestore.deserialize_cdr(d.payload, msgtype)
+        except Exception as exc:  # rosbags raises many types on garbage
+            raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
+
     def _record_cdr(self, d: Delivery) -> bool:
         """Write a CDR message (a camera cloud as the thinner says, one of a key excluded
         not at all), acknowledging camera frames; returns whether it was written."""
@@ -248,12 +262,9 @@ class Recorder(Service):
         if d.key == POINTS_KEY and self.thinner.count == SAMPLE and self.thinner.rate_mb_s:
             log.info("camera clouds: %.1f MB a second: writing one in %d (cloud_every, "
                      "cloud_budget_mb_s)", self.thinner.rate_mb_s, self.thinner.every)
-        try:
-            if write:
-                self._typestore.deserialize_cdr(d.payload, msgtype)
-                msgdef = ros2_msgdef(msgtype)
-        except Exception as exc:  # rosbags raises many types on garbage
-            raise BadMessage(f"{d.key}: not a valid {msgtype}: {exc}") from None
+        if write:
+            self.check_cdr(d, msgtype)
+            msgdef = ros2_msgdef(msgtype)
         if write:
             channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
             self.writer.add_message(channel, log_time, d.payload, log_time,

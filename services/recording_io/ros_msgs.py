@@ -11,6 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wavegrasp.recording_io.trajectory_cdr import (  # noqa: F401 (the arm's types together)
+    JOINT_TRAJECTORY,
+    decode_joint_trajectory,
+    encode_joint_trajectory,
+)
 from wavegrasp.recording_io.typestore import ros2_typestore
 from wavegrasp.recording_io.writer import _header, check_points, check_stamp
 
@@ -169,7 +174,6 @@ def decode_joint_state(cdr: bytes) -> tuple[int, list[str], np.ndarray, np.ndarr
     return stamp_ns(msg.header), names, p, v
 
 
-JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 ROS_CLOCK = "rosgraph_msgs/msg/Clock"
 
 
@@ -180,57 +184,6 @@ def encode_clock(stamp_ns: int) -> bytes:
     msg = t[ROS_CLOCK](clock=t["builtin_interfaces/msg/Time"](
         sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000))
     return bytes(ros2_typestore().serialize_cdr(msg, ROS_CLOCK))
-
-
-def encode_joint_trajectory(names: list[str], times_s: np.ndarray, q: np.ndarray,
-                            qd: np.ndarray) -> bytes:
-    """A ``trajectory_msgs/msg/JointTrajectory`` as CDR bytes, as a ros2_control joint
-    trajectory controller takes it: ``header.stamp`` the first sample's time, each point's
-    ``time_from_start`` from it.
-
-    times_s : array, shape (k,), seconds (the recording clock; a live vehicle's is the wall);
-    q, qd : arrays, shape (k, n), rad or m and their rates, per joint of ``names``.
-    """
-    t = ros2_typestore().types
-    start_ns = check_stamp(int(round(float(times_s[0]) * 1e9))) if len(times_s) else 0
-    points = []
-    for k, time_s in enumerate(times_s):
-        since = int(round(float(time_s) * 1e9)) - start_ns
-        points.append(t["trajectory_msgs/msg/JointTrajectoryPoint"](
-            positions=np.asarray(q[k], dtype=float), velocities=np.asarray(qd[k], dtype=float),
-            accelerations=np.zeros(0), effort=np.zeros(0),
-            time_from_start=t["builtin_interfaces/msg/Duration"](
-                sec=since // 1_000_000_000, nanosec=since % 1_000_000_000)))
-    msg = t[JOINT_TRAJECTORY](header=_header(start_ns, ""), joint_names=list(names),
-                              points=points)
-    return bytes(ros2_typestore().serialize_cdr(msg, JOINT_TRAJECTORY))
-
-
-def decode_joint_trajectory(cdr: bytes) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
-    """A ``trajectory_msgs/msg/JointTrajectory``: (names, times (k,) s from its stamp's
-    clock, positions (k, n), velocities (k, n), zero where a point has none). A stamp of 0
-    means "now", as for a joint trajectory controller: times are then from 0. Raises
-    ValueError naming the field that does not fit."""
-    msg = _deserialize(cdr, JOINT_TRAJECTORY)
-    names, n = list(msg.joint_names), len(msg.joint_names)
-    if not msg.points:
-        raise ValueError("joint_trajectory: no points")
-    start = stamp_ns(msg.header)
-    times, q, qd = [], [], []
-    for k, point in enumerate(msg.points):
-        if len(point.positions) != n or len(point.velocities) not in (0, n):
-            raise ValueError(f"joint_trajectory: point {k} has {len(point.positions)} positions "
-                             f"and {len(point.velocities)} velocities for {n} joints")
-        d = point.time_from_start
-        times.append((start + int(d.sec) * 1_000_000_000 + int(d.nanosec)) * 1e-9)
-        q.append(point.positions)
-        qd.append(point.velocities if len(point.velocities) else np.zeros(n))
-    times_s, q_a, qd_a = np.array(times), np.array(q, dtype=float), np.array(qd, dtype=float)
-    if np.any(np.diff(times_s) <= 0):
-        raise ValueError("joint_trajectory: time_from_start must increase strictly")
-    if not (np.isfinite(q_a).all() and np.isfinite(qd_a).all()):
-        raise ValueError("joint_trajectory: a position or velocity is not finite")
-    return names, times_s, q_a.reshape(len(times), n), qd_a.reshape(len(times), n)
 
 
 def encode_organized_points(image: np.ndarray, height: int, width: int, stamp_ns: int,
