@@ -66,8 +66,9 @@ def test_an_update_replaces_the_rest_keeps_the_standby_and_does_not_reopen_the_j
     update.times, update.q, update.qd = update.times[:6], update.q[:6], update.qd[:6]
     update.t_grasp, update.final_from, update.t_close = T0 + 2.1, T0 + 1.7, T0 + 1.9
     update.standby = arm.q_home - 0.1  # solved anew since: the approved plan's still holds
-    path, jaw = commander.grasp(update, update=True)
+    path, jaw = commander.grasp(update, update=True, now_s=T0 + 0.9)  # approved then
     np.testing.assert_allclose(path.q[-1], a.standby, atol=1e-9)
+    assert commander.arm_path.times[0] <= T0 + 0.9 < commander.arm_path.times[1]  # no more
     spliced = commander.arm_path
     np.testing.assert_allclose(spliced.at(T0 + 1.0)[0], a.path(path.names).at(T0 + 1.0)[0])
     np.testing.assert_allclose(spliced.at(T0 + 1.65)[0], update.path(path.names).at(T0 + 1.65)[0])

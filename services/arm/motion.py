@@ -68,6 +68,12 @@ class JointPath:
         k = int(np.searchsorted(self.times, t_s, side="right"))
         return self.q[min(k, len(self.times) - 1)]
 
+    def since(self, t_s: float) -> JointPath:
+        """The path from its last sample at or before ``t_s`` on: the same from ``t_s``, and
+        followed paths do not grow without end."""
+        k = max(int(np.searchsorted(self.times, t_s, side="right")) - 1, 0)
+        return self if k == 0 else JointPath(self.names, self.times[k:], self.q[k:], self.qd[k:])
+
     def then(self, later: JointPath) -> JointPath:
         """This path up to ``later``'s first sample, then ``later``: how a joint trajectory
         controller takes a new trajectory while following one."""

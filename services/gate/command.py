@@ -48,10 +48,12 @@ class Commander:
         """Is a commanded path still under way at ``now_s``?"""
         return self.arm_path is not None and now_s < self.arm_path.end_s
 
-    def grasp(self, attempt: Attempt, update: bool = False) -> tuple[JointPath, JointPath]:
-        """An approved plan (``update``: a closed-loop update of the one commanded): the
-        arm's path and the jaw's, replacing what was commanded from the plan's first sample
-        on. A jaw already narrowed or closing is not opened again by an update."""
+    def grasp(self, attempt: Attempt, update: bool = False, now_s: float | None = None
+              ) -> tuple[JointPath, JointPath]:
+        """An approved plan (``update``: a closed-loop update of the one commanded) at
+        ``now_s`` (default: its first sample's time): the arm's path and the jaw's,
+        replacing what was commanded from the plan's first sample on. A jaw already narrowed
+        or closing is not opened again by an update."""
         plan = attempt.path(self.names)
         if not update:  # an update's return goes where its plan's went
             self.standby_q = attempt.standby
@@ -72,7 +74,7 @@ class Commander:
         if now > closed + 1e-6:
             events.append((max(attempt.t_close, t0), closed))
         events.append((t_end, wide))
-        return self._command(path, self.jaw(events))
+        return self._command(path, self.jaw(events), t0 if now_s is None else now_s)
 
     def abort(self, now_s: float) -> tuple[JointPath, JointPath] | None:
         """Stop what is commanded now: back out along the approach and return to standby,
@@ -83,7 +85,7 @@ class Commander:
         back = self.back_to_standby(q, qd, now_s, self.standby_q, self.cfg.retreat_m)
         if back is None:  # no move found: hold where it is
             back = JointPath(self.names, [now_s], [q], [np.zeros(len(q))])
-        return self._command(back, self.jaw([(now_s, self.arm.jaw_max_opening_m)]))
+        return self._command(back, self.jaw([(now_s, self.arm.jaw_max_opening_m)]), now_s)
 
     def standby(self, move: JointPath, now_s: float) -> JointPath | None:
         """The planner's move of the idle arm, or None while another path is under way."""
@@ -91,13 +93,16 @@ class Commander:
             raise ValueError(f"standby joint_names {move.names} are not the arm's {self.names}")
         if self.busy(now_s):
             return None
-        return self._command(move, None)[0]
+        return self._command(move, None, now_s)[0]
 
-    def _command(self, path: JointPath, jaw: JointPath | None
+    def _command(self, path: JointPath, jaw: JointPath | None, now_s: float
                  ) -> tuple[JointPath, JointPath | None]:
-        self.arm_path = path if self.arm_path is None else self.arm_path.then(path)
+        """Keep what is commanded from ``now_s`` on (as the controllers follow it)."""
+        self.arm_path = path if self.arm_path is None else \
+            self.arm_path.since(now_s).then(path)
         if jaw is not None:
-            self.jaw_path = jaw if self.jaw_path is None else self.jaw_path.then(jaw)
+            self.jaw_path = jaw if self.jaw_path is None else \
+                self.jaw_path.since(now_s).then(jaw)
         return path, jaw
 
     def jaw(self, events: list[tuple[float, float]]) -> JointPath:

@@ -174,7 +174,8 @@ class GateService(Service):
             log.info("no-go %s: %s", msg.plan_id, decision.reason)
         self.bus.publish(DECISION_KEY, decision)
         if decision.go:  # its paths right after it (they start later: t_start is ahead)
-            self.send(*self.commander.grasp(attempt, update=msg.update_of is not None))
+            self.send(*self.commander.grasp(attempt, update=msg.update_of is not None,
+                                            now_s=now_ns * 1e-9))
 
 
 def main(argv: list[str] | None = None) -> int:

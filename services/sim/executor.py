@@ -101,11 +101,13 @@ class Executor:
     def follow(self, path: JointPath) -> None:
         """Take a new path for the arm's joints or the jaw's (by its names), replacing the
         one followed from its first sample on; raises ValueError for other joints."""
-        arm = self.world.arm
+        arm, now = self.world.arm, self.world.time_s
         if path.names == list(arm.joint_names):
-            self.arm_path = path if self.arm_path is None else self.arm_path.then(path)
+            self.arm_path = path if self.arm_path is None else \
+                self.arm_path.since(now).then(path)
         elif path.names == list(arm.jaw_joints):
-            self.jaw_path = path if self.jaw_path is None else self.jaw_path.then(path)
+            self.jaw_path = path if self.jaw_path is None else \
+                self.jaw_path.since(now).then(path)
             self._move_jaw()
         else:
             raise ValueError(f"joint names {path.names} are neither the arm's "
