@@ -161,15 +161,15 @@ def typestore() -> Typestore:
 
 
 def warm_up() -> None:
-    """Generate rosbags' CDR code of every type a service sends or reads now, not at its first
-    message: the first message of each type took 3-13 ms more (a plan 11 ms), on the
-    camera-to-decision path (about 70 ms for all at start instead)."""
+    """Generate rosbags' CDR code of every ROS 2 type a service reads, and compile our own
+    messages' codecs, now, not at its first message: the first message of each type took
+    3-13 ms more (a plan 11 ms), on the camera-to-decision path."""
     store = typestore()
     for name in (*definitions(), *ROS_KEYS.values()):
         store.get_msgdef(name if "/" in name else msgtype(name))
-    for model in MESSAGE_TYPES.values():
-        _model_to_ros(model, store)
-        _model_from_ros(model)
+    from wavegrasp.schemas.cdr import compile_all
+
+    compile_all()
 
 
 # -- model -> rosbags message ----------------------------------------------------------------
@@ -310,18 +310,33 @@ def _header_from_ros(ros: Any) -> dict[str, Any]:
 
 # -- the codec -------------------------------------------------------------------------------
 def to_cdr(msg: BaseModel) -> bytes:
-    """``msg`` as little-endian CDR of its ``wavegrasp_msgs`` type (with the 4-byte header)."""
+    """``msg`` as little-endian CDR of its ``wavegrasp_msgs`` type (with the 4-byte header),
+    written by :mod:`wavegrasp.schemas.cdr` (rosbags' bytes, several times sooner)."""
+    from wavegrasp.schemas.cdr import encode  # it builds on this module's mapping
+
+    return encode(msg)
+
+
+def from_cdr(data: bytes | memoryview, model: type[BaseModel]) -> BaseModel:
+    """``model`` from CDR ``data``; ValueError (or pydantic's ValidationError) naming what is
+    wrong when the bytes are not a valid message of its type."""
+    from wavegrasp.schemas.cdr import decode
+
+    try:
+        fields = decode(data, model)
+    except ValueError as exc:
+        raise ValueError(f"not a valid {msgtype(model.__name__)}: {exc}") from None
+    return model.model_validate(fields)
+
+
+def rosbags_to_cdr(msg: BaseModel) -> bytes:
+    """``msg`` as CDR by rosbags' serializer: what :func:`to_cdr` must write."""
     store = typestore()
     model = type(msg)
     return bytes(store.serialize_cdr(_model_to_ros(model, store)(msg),
                                      msgtype(model.__name__)))
 
 
-def from_cdr(data: bytes | memoryview, model: type[BaseModel]) -> BaseModel:
-    """``model`` from CDR ``data``; ValueError (or pydantic's ValidationError) naming what is
-    wrong when the bytes are not a valid message of its type."""
-    try:
-        ros = typestore().deserialize_cdr(data, msgtype(model.__name__))
-    except Exception as exc:  # rosbags raises several types on malformed bytes
-        raise ValueError(f"not a valid {msgtype(model.__name__)}: {exc}") from None
-    return model.model_validate(_model_from_ros(model)(ros))
+def rosbags_fields(data: bytes | memoryview, model: type[BaseModel]) -> dict[str, Any]:
+    """``model``'s fields read by rosbags' deserializer: what :func:`from_cdr` must read."""
+    return _model_from_ros(model)(typestore().deserialize_cdr(data, msgtype(model.__name__)))
