@@ -151,7 +151,7 @@ def rosbags_trajectory(stamp_ns: int, frame_id: str, names: list[str], from_star
 
 
 def test_trajectories_are_written_and_read_byte_for_byte_as_rosbags_does() -> None:
-    from wavegrasp.recording_io.trajectory_cdr import parse_joint_trajectory
+    from wavegrasp.recording_io.joint_cdr import parse_joint_trajectory
 
     rng = np.random.default_rng(3)
     for case in range(40):
@@ -182,3 +182,32 @@ def test_trajectories_are_written_and_read_byte_for_byte_as_rosbags_does() -> No
     for n in range(len(ours)):  # every truncation is refused, naming the type
         with pytest.raises(ValueError, match="not a valid trajectory_msgs/msg/JointTrajectory"):
             parse_joint_trajectory(ours[:n])
+
+
+def test_joint_states_are_written_and_read_byte_for_byte_as_rosbags_does() -> None:
+    from wavegrasp.recording_io.joint_cdr import parse_joint_state
+    from wavegrasp.recording_io.ros_msgs import decode_joint_state, encode_joint_state
+    from wavegrasp.recording_io.typestore import ros2_typestore
+
+    store, rng = ros2_typestore(), np.random.default_rng(5)
+    t = store.types
+    for case in range(20):
+        n = int(rng.integers(0, 9))
+        names = ["f" * int(rng.integers(1, 6)) + str(i) for i in range(n)]
+        stamp = int(rng.integers(0, 2**31)) * 10**9 + int(rng.integers(0, 10**9))
+        p, v = rng.normal(size=n), rng.normal(size=n)
+        effort = np.zeros(0) if case % 2 else rng.normal(size=n)
+        theirs = bytes(store.serialize_cdr(t["sensor_msgs/msg/JointState"](
+            header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+                sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="" if case % 2 else "base"),
+            name=names, position=p, velocity=v, effort=effort), "sensor_msgs/msg/JointState"))
+        got = parse_joint_state(theirs)
+        assert got[:2] == (stamp, names)
+        for ours, want in zip(got[2:], (p, v, effort), strict=True):
+            np.testing.assert_array_equal(ours, want)
+        if case % 2:  # no efforts, no frame: what ours writes
+            assert encode_joint_state(stamp, names, p, v) == theirs, case
+            assert decode_joint_state(theirs)[0] == stamp
+        for k in range(len(theirs)):
+            with pytest.raises(ValueError, match="not a valid sensor_msgs/msg/JointState"):
+                parse_joint_state(theirs[:k])

@@ -56,10 +56,14 @@ class JointPath:
         """Positions (n,) interpolated at ``t_s`` (the first before the path, the last
         after it) and the velocities (n,) of the sample ending the span ``t_s`` is in (zero
         outside the path): a position controller's target with its feed-forward."""
-        q = np.array([np.interp(t_s, self.times, self.q[:, j]) for j in range(self.q.shape[1])])
-        if not self.times[0] <= t_s < self.times[-1]:
-            return q, np.zeros(self.q.shape[1])
-        return q, self.qd[int(np.searchsorted(self.times, t_s))]
+        times, still = self.times, np.zeros(self.q.shape[1])
+        if t_s >= times[-1]:
+            return self.q[-1].copy(), still
+        if t_s <= times[0]:
+            return self.q[0].copy(), (self.qd[0] if t_s == times[0] else still)
+        k = int(np.searchsorted(times, t_s))
+        w = (t_s - times[k - 1]) / (times[k] - times[k - 1])
+        return self.q[k - 1] + (self.q[k] - self.q[k - 1]) * w, self.qd[k]
 
     def heading(self, t_s: float) -> np.ndarray:
         """Positions (n,) of the sample ending the span ``t_s`` is in (the first before the

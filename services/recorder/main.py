@@ -40,13 +40,18 @@ from pydantic import BaseModel, Field, field_validator
 from wavegrasp.arm import ArmModel
 from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recorder.thinning import SAMPLE, CloudThinner
+from wavegrasp.recording_io.joint_cdr import (
+    JOINT_STATE,
+    JOINT_TRAJECTORY,
+    parse_joint_state,
+    parse_joint_trajectory,
+)
 from wavegrasp.recording_io.ros_msgs import (
     StaticTransforms,
     decode_points,
     decode_pose,
     decode_tf,
 )
-from wavegrasp.recording_io.trajectory_cdr import JOINT_TRAJECTORY, parse_joint_trajectory
 from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
 from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
@@ -234,9 +239,11 @@ class Recorder(Service):
 
     def check_cdr(self, d: Delivery, msgtype: str) -> None:
         """Raise BadMessage unless ``d`` is well-formed CDR of ``msgtype``."""
-        if msgtype == JOINT_TRAJECTORY:  # rosbags reads a trajectory's points one by one
+        parse = {JOINT_TRAJECTORY: parse_joint_trajectory, JOINT_STATE: parse_joint_state}.get(
+            msgtype)  # the arm's, a message every frame or more: read by hand, sooner
+        if parse is not None:
             try:
-                parse_joint_trajectory(d.payload)
+                parse(d.payload)
             except ValueError as exc:
                 raise BadMessage(f"{d.key}: {exc}") from None
             return

@@ -11,9 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wavegrasp.recording_io.trajectory_cdr import (  # noqa: F401 (the arm's types together)
+from wavegrasp.recording_io.joint_cdr import (  # noqa: F401 (the arm's types together)
+    JOINT_STATE,
     JOINT_TRAJECTORY,
+    decode_joint_state,
     decode_joint_trajectory,
+    encode_joint_state,
     encode_joint_trajectory,
 )
 from wavegrasp.recording_io.typestore import ros2_typestore
@@ -138,40 +141,6 @@ def encode_points(points: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
         fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(pts),
         data=pts.view(np.uint8).reshape(-1), is_dense=bool(np.isfinite(pts).all()))
     return bytes(ros2_typestore().serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
-
-
-JOINT_STATE = "sensor_msgs/msg/JointState"
-
-
-def encode_joint_state(stamp_ns: int, names: list[str], positions: np.ndarray,
-                       velocities: np.ndarray) -> bytes:
-    """A ``sensor_msgs/msg/JointState`` as CDR bytes, as ros2_control's joint state
-    broadcaster publishes one: positions (n,) and velocities (n,), radians (revolute) or
-    metres (prismatic), per joint of ``names``; no efforts."""
-    p, v = np.asarray(positions, dtype=float), np.asarray(velocities, dtype=float)
-    if p.shape != (len(names),) or v.shape != (len(names),):
-        raise ValueError(f"joint state of {len(names)} joints needs that many positions and "
-                         f"velocities, got shapes {p.shape} and {v.shape}")
-    msg = ros2_typestore().types[JOINT_STATE](
-        header=_header(check_stamp(stamp_ns), ""), name=list(names), position=p, velocity=v,
-        effort=np.zeros(0))
-    return bytes(ros2_typestore().serialize_cdr(msg, JOINT_STATE))
-
-
-def decode_joint_state(cdr: bytes) -> tuple[int, list[str], np.ndarray, np.ndarray]:
-    """A ``sensor_msgs/msg/JointState``: (stamp ns, names, positions (n,), velocities (n,),
-    zero where it has none); raises ValueError naming the field that does not fit."""
-    msg = _deserialize(cdr, JOINT_STATE)
-    names, n = list(msg.name), len(msg.name)
-    if len(msg.position) != n:
-        raise ValueError(f"joint_states: {n} names but {len(msg.position)} positions")
-    if len(msg.velocity) not in (0, n):
-        raise ValueError(f"joint_states: {n} names but {len(msg.velocity)} velocities")
-    p = np.asarray(msg.position, dtype=float)
-    v = np.asarray(msg.velocity, dtype=float) if len(msg.velocity) else np.zeros(n)
-    if not (np.isfinite(p).all() and np.isfinite(v).all()):
-        raise ValueError("joint_states: a position or velocity is not finite")
-    return stamp_ns(msg.header), names, p, v
 
 
 ROS_CLOCK = "rosgraph_msgs/msg/Clock"

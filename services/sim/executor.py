@@ -70,6 +70,7 @@ class Executor:
         self.arm_path: JointPath | None = None
         self.jaw_path: JointPath | None = None
         self._jaw_target: np.ndarray | None = None
+        self._at_end = False  # the arm was commanded its path's last point
         self._truth: list[tuple[float, np.ndarray]] = []
         self._touched: dict[str, float] = {}
         self._tool_at_grasp: np.ndarray | None = None
@@ -105,6 +106,7 @@ class Executor:
         if path.names == list(arm.joint_names):
             self.arm_path = path if self.arm_path is None else \
                 self.arm_path.since(now).then(path)
+            self._at_end = False
         elif path.names == list(arm.jaw_joints):
             self.jaw_path = path if self.jaw_path is None else \
                 self.jaw_path.since(now).then(path)
@@ -139,8 +141,9 @@ class Executor:
         w.drive_object(position, quat_xyzw)
         a = self.attempt
         w.watch_tether = a is not None and w.time_s < a.t_grasp  # read below only then
-        if self.arm_path is not None:
+        if self.arm_path is not None and not self._at_end:  # at its end it holds there
             w.command_arm(*self.arm_path.at(t_s))
+            self._at_end = t_s >= self.arm_path.end_s
         w.step_to(t_s)
         result = None if a is None else self._watch(a, t_s, position)
         self._move_jaw()  # after the judging: the jaw opens once the grasp was held
