@@ -31,38 +31,44 @@ _PRIM = {int: struct.Struct("<q"), float: struct.Struct("<d"), bool: struct.Stru
 _U32, _TIME, _U8 = struct.Struct("<I"), struct.Struct("<iI"), struct.Struct("<B")
 
 
+_ZEROS = [bytes(k) for k in range(8)]
+
+
 class Writer:
     def __init__(self) -> None:
         self.buf = bytearray(ENCAPSULATION)
 
     def pad(self, n: int) -> None:
-        k = -(len(self.buf) - 4) % n
+        """Zeros up to a multiple of ``n`` (a power of two) from the end of the header."""
+        k = (4 - len(self.buf)) & (n - 1)
         if k:
-            self.buf.extend(bytes(k))
+            self.buf += _ZEROS[k]
 
     def u32(self, value: int) -> None:
         self.pad(4)
-        self.buf.extend(_U32.pack(value))
+        self.buf += _U32.pack(value)
 
     def string(self, text: str) -> None:
         data = text.encode()
-        self.u32(len(data) + 1)
-        self.buf.extend(data)
+        self.pad(4)
+        self.buf += _U32.pack(len(data) + 1)
+        self.buf += data
         self.buf.append(0)
 
 
 class Reader:
     def __init__(self, data: bytes | memoryview) -> None:
-        self.data, self.pos = memoryview(data).cast("B"), 4
-        if bytes(self.data[:4]) != ENCAPSULATION:
-            raise ValueError("not little-endian CDR (encapsulation header "
-                             f"{bytes(self.data[:4]).hex()})")
+        self.data = data if isinstance(data, bytes) else bytes(data)
+        self.pos, self.end = 4, len(self.data)
+        if self.data[:4] != ENCAPSULATION:
+            raise ValueError(f"not little-endian CDR (encapsulation header {self.data[:4].hex()})")
 
     def take(self, n: int, align: int = 1) -> int:
-        """Skip the padding to ``align``, then ``n`` bytes; returns where they start."""
-        start = self.pos + (-(self.pos - 4) % align)
-        if start + n > len(self.data):
-            raise ValueError(f"ends at byte {len(self.data)}, {n} more needed at {start}")
+        """Skip the padding to ``align`` (a power of two), then ``n`` bytes; returns where
+        they start."""
+        start = self.pos + ((4 - self.pos) & (align - 1))
+        if start + n > self.end:
+            raise ValueError(f"ends at byte {self.end}, {n} more needed at {start}")
         self.pos = start + n
         return start
 
@@ -70,16 +76,20 @@ class Reader:
         return _U32.unpack_from(self.data, self.take(4, 4))[0]
 
     def string(self) -> str:
-        n = self.u32()
-        at = self.take(n)
-        if n < 1 or self.data[at + n - 1] != 0:
-            raise ValueError(f"string without its terminator at byte {at}")
-        return bytes(self.data[at:at + n - 1]).decode()
+        at = self.pos + ((4 - self.pos) & 3)
+        if at + 4 > self.end:
+            raise ValueError(f"ends at byte {self.end}, a string's length needed at {at}")
+        n = _U32.unpack_from(self.data, at)[0]
+        at += 4
+        if n < 1 or at + n > self.end or self.data[at + n - 1] != 0:
+            raise ValueError(f"string of {n} bytes at byte {at} past the end or unterminated")
+        self.pos = at + n
+        return self.data[at:at + n - 1].decode()
 
     def count(self, least_bytes: int) -> int:
         """A sequence's length, refused when the rest cannot hold that many elements."""
         n = self.u32()
-        if n * least_bytes > len(self.data) - self.pos:
+        if n * least_bytes > self.end - self.pos:
             raise ValueError(f"sequence of {n} at byte {self.pos} longer than the message")
         return n
 
@@ -93,10 +103,12 @@ def _scalar(kind: Any) -> tuple[Encode, Decode]:
         return (lambda w, v: w.string(v)), (lambda r: r.string())
     s = _PRIM[kind]
 
+    size, pack, unpack = s.size, s.pack, s.unpack_from
+
     def enc(w: Writer, v: Any) -> None:
-        w.pad(s.size)
-        w.buf.extend(s.pack(v))
-    return enc, (lambda r: s.unpack_from(r.data, r.take(s.size, s.size))[0])
+        w.pad(size)
+        w.buf += pack(v)
+    return enc, (lambda r: unpack(r.data, r.take(size, size))[0])
 
 
 def _array(kind: Any) -> tuple[Encode, Decode]:
@@ -169,11 +181,7 @@ def _field(annotation: Any) -> tuple[Encode, Decode]:
     annotation = _plain(annotation)
     inner = _optional(annotation)
     if inner is not None:
-        if inner in DTYPES:
-            enc_a, dec_a = _array(inner)
-            return ((lambda w, v: enc_a(w, () if v is None else (v,))),
-                    (lambda r: (dec_a(r) or [None])[0]))
-        enc_one, dec_one = _field(inner)
+        enc_one, dec_one = _field(inner)  # a number: X[<=1] is a count and the number
 
         def enc(w: Writer, v: Any) -> None:
             w.u32(0 if v is None else 1)

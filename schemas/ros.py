@@ -3,7 +3,9 @@
 The pydantic models are the one source: :func:`definitions` derives each ``.msg`` from its
 model (``schemas/msg/NAME.msg`` holds them for colcon; ``python -m wavegrasp.schemas.export``
 writes them, and a test fails while they differ), and :func:`to_cdr` / :func:`from_cdr`
-convert between a model and its CDR bytes with rosbags' serializer. Mapping, field by field:
+convert between a model and its CDR bytes (by :mod:`wavegrasp.schemas.cdr`, compiled per
+model; :func:`rosbags_to_cdr` / :func:`rosbags_fields` do it through rosbags' serializer, the
+reference it is tested against). Mapping, field by field:
 
 - ``header`` (:class:`Header`) -> ``std_msgs/Header header`` (its ``stamp`` from ``stamp_ns``,
   ``frame_id``) and ``wavegrasp_msgs/Trace trace`` (``seq`` and the ``hops``): ROS tools find
