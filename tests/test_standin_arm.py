@@ -39,6 +39,7 @@ def standin_compose(path: Path, arm: ArmModel) -> Path:
     for name in ("WAVEGRASP_ACK_SERVICES", "WAVEGRASP_WAIT_FOR"):  # the sim's, not the arm's
         player["environment"][name] = ",".join(
             s for s in player["environment"][name].split(",") if s != "sim")
+    player["environment"]["WAVEGRASP_ROS_CLOCK_KEY"] = "clock"  # the stand-in's use_sim_time
     path.write_text(yaml.safe_dump(compose))
     return path
 

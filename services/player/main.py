@@ -70,10 +70,10 @@ class PlayerSettings(Settings):
     ack_timeout_s: float = Field(30.0, gt=0)
     clock_period_s: float = Field(0.1, ge=0, description="least recording time between "
                                   "clock ticks, besides the one before every camera frame")
-    ros_clock_key: str = Field("clock", description="each tick also goes here as "
-                               "rosgraph_msgs/msg/Clock, the time of ROS 2 nodes with "
-                               "use_sim_time (a real arm's controllers during a replay); "
-                               "empty: not sent")
+    ros_clock_key: str = Field("", description="if set (ROS 2's is 'clock'), each tick also "
+                               "goes there as rosgraph_msgs/msg/Clock, the time of ROS 2 nodes "
+                               "with use_sim_time (a real arm's controllers during a replay); "
+                               "off by default: a message more a frame for every run")
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
     wait_timeout_s: float = Field(30.0, gt=0)
