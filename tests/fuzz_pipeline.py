@@ -405,8 +405,14 @@ class GateScenario(Scenario):
             out = GraspOutcome(header=header(self.ns(1.0)), plan_id="a", trial=0, attempt=1,
                                success=True)
             return [message_case("old outcome", out), message_case("duplicate outcome", out)]
-        if key == "wavegrasp/planner/standby":  # checked at the frame's end: not counted
-            return [message_case("standby for another arm", self.standby(t_s, ["a", "b"]))]
+        if key == "wavegrasp/planner/standby":
+            narrow = self.standby(t_s)
+            narrow.joint_trajectory[0].positions = [0.0, 0.0]
+            return [message_case("standby for another arm", self.standby(t_s, ["a", "b"]),
+                                 r"standby joint_names .* are not the arm's"),
+                    message_case("standby of 2 positions a sample", narrow,
+                                 r"standby joint_trajectory needs 2 or more samples, each "
+                                 r"of 6 positions")]
         return super().odd(key)
 
     def after(self, h: Harness) -> None:

@@ -75,7 +75,7 @@ class GateService(Service):
         self.cfg = settings
         self.gate = Gate(settings.gate_config())
         self.commander = Commander(arm, settings.command_config())
-        self._standby: ArmStandby | None = None  # asked for this frame
+        self._standby: JointPath | None = None  # asked for this frame
         self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction, MotionPrediction)
@@ -95,21 +95,28 @@ class GateService(Service):
         self.gate.on_outcome(msg.plan_id)
 
     def on_standby(self, msg: ArmStandby, _d: Delivery) -> None:
-        """Kept for the frame's end: a go in the same frame comes first."""
-        self._standby = msg
+        """Checked now (a bad one is counted on its key), commanded at the frame's end: a go
+        in the same frame comes first."""
+        names, s = list(msg.joint_names), msg.joint_trajectory
+        if names != self.commander.names:
+            raise ValueError(f"standby joint_names {names} are not the arm's "
+                             f"{self.commander.names}")
+        n = len(names)
+        if len(s) < 2 or any(len(x.positions) != n or len(x.velocities) not in (0, n)
+                             for x in s):
+            raise ValueError(f"standby joint_trajectory needs 2 or more samples, each of {n} "
+                             f"positions (and velocities, if any)")
+        self._standby = JointPath(names, [x.t_ns * 1e-9 for x in s], [x.positions for x in s],
+                                  [x.velocities or [0.0] * len(names) for x in s])
 
     def finish_frame(self, frame_seq: int) -> None:
         self.watch()
         self.command_standby()
 
     def command_standby(self) -> None:
-        msg, self._standby = self._standby, None
-        if msg is None:
+        move, self._standby = self._standby, None
+        if move is None:
             return
-        s = msg.joint_trajectory
-        move = JointPath(list(msg.joint_names), [x.t_ns * 1e-9 for x in s],
-                         [x.positions for x in s],
-                         [x.velocities or [0.0] * len(msg.joint_names) for x in s])
         path = self.commander.standby(move, self.clock.now_ns() * 1e-9)
         if path is None:
             self.counters["standby moves ignored: busy"] += 1
