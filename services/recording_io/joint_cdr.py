@@ -218,8 +218,9 @@ def decode_joint_trajectory(cdr: bytes | memoryview
                             ) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
     """A ``trajectory_msgs/msg/JointTrajectory``: (names, times (k,) s from its stamp's
     clock, positions (k, n), velocities (k, n), zero where a point has none). A stamp of 0
-    means "now", as for a joint trajectory controller: times are then from 0. Raises
-    ValueError naming the field that does not fit."""
+    (a joint trajectory controller's "start now") gives times from 0: the commander always
+    stamps its trajectories, and the sim follows them as stamped. Raises ValueError naming
+    the field that does not fit."""
     msg = parse_joint_trajectory(cdr)
     n, k = len(msg.names), len(msg.from_start_ns)
     if not k:
