@@ -55,6 +55,18 @@ class Writer:
         self.buf += data
         self.buf.append(0)
 
+    def time(self, ns: int) -> None:
+        """A ``builtin_interfaces`` Time or Duration: int32 seconds, uint32 nanoseconds."""
+        self.pad(4)
+        self.buf += _TIME.pack(*divmod(ns, NS))
+
+    def doubles(self, values: np.ndarray) -> None:
+        """A ``float64[]``."""
+        self.u32(len(values))
+        if len(values):
+            self.pad(8)
+            self.buf += np.ascontiguousarray(values, dtype="<f8").tobytes()
+
 
 class Reader:
     def __init__(self, data: bytes | memoryview) -> None:
@@ -72,8 +84,23 @@ class Reader:
         self.pos = start + n
         return start
 
+    def need(self, n: int) -> None:
+        if self.pos + n > self.end:
+            raise ValueError(f"ends at byte {self.end}, {n} more needed at {self.pos}")
+
     def u32(self) -> int:
         return _U32.unpack_from(self.data, self.take(4, 4))[0]
+
+    def time(self) -> tuple[int, int]:
+        """A Time or Duration: (seconds, nanoseconds)."""
+        return _TIME.unpack_from(self.data, self.take(8, 4))
+
+    def doubles(self) -> np.ndarray:
+        """A ``float64[]`` (read-only, on the message's bytes)."""
+        n = self.u32()
+        if not n:
+            return np.zeros(0)
+        return np.frombuffer(self.data, "<f8", n, self.take(8 * n, 8))
 
     def string(self) -> str:
         at = self.pos + ((4 - self.pos) & 3)
@@ -210,8 +237,7 @@ def _header() -> tuple[Encode, Decode]:
     i64 = _PRIM[int]
 
     def enc(w: Writer, h: Header) -> None:
-        w.pad(4)
-        w.buf.extend(_TIME.pack(*divmod(h.stamp_ns, NS)))
+        w.time(h.stamp_ns)
         w.string(h.frame_id)
         w.pad(8)
         w.buf.extend(i64.pack(h.seq))
@@ -223,7 +249,7 @@ def _header() -> tuple[Encode, Decode]:
             w.buf.extend(i64.pack(hop.sent_ns))
 
     def dec(r: Reader) -> dict[str, Any]:
-        sec, nanosec = _TIME.unpack_from(r.data, r.take(8, 4))
+        sec, nanosec = r.time()
         frame_id = r.string()
         seq = i64.unpack_from(r.data, r.take(8, 8))[0]
         hops = []

@@ -17,43 +17,14 @@ aligned to 4.
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 
 import numpy as np
 
+from wavegrasp.schemas.cdr import NS, Reader, Writer
+
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 JOINT_STATE = "sensor_msgs/msg/JointState"
-ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
-NS = 1_000_000_000
-_U32, _TIME = struct.Struct("<I"), struct.Struct("<iI")
-
-
-class _Writer:
-    def __init__(self) -> None:
-        self.buf = bytearray(ENCAPSULATION)
-
-    def align(self, n: int) -> None:
-        self.buf.extend(bytes(-(len(self.buf) - 4) % n))
-
-    def u32(self, value: int) -> None:
-        self.align(4)
-        self.buf.extend(_U32.pack(value))
-
-    def time(self, ns: int) -> None:
-        self.align(4)
-        self.buf.extend(_TIME.pack(ns // NS, ns % NS))
-
-    def string(self, text: str) -> None:
-        data = text.encode()
-        self.u32(len(data) + 1)
-        self.buf.extend(data + b"\0")
-
-    def doubles(self, values: np.ndarray) -> None:
-        self.u32(len(values))
-        if len(values):
-            self.align(8)
-            self.buf.extend(np.ascontiguousarray(values, dtype="<f8").tobytes())
 
 
 def encode_joint_trajectory(names: list[str], times_s: np.ndarray, q: np.ndarray,
@@ -70,7 +41,7 @@ def encode_joint_trajectory(names: list[str], times_s: np.ndarray, q: np.ndarray
     if start < 0 or (len(times_ns) and int(times_ns[-1]) - start >= 2**31 * NS):
         raise ValueError(f"joint_trajectory times {times_s[0]}..{times_s[-1]} s do not fit "
                          "a header stamp and int32 durations")
-    w = _Writer()
+    w = Writer()
     w.time(start)
     w.string(frame_id)
     w.u32(len(names))
@@ -117,55 +88,7 @@ class Trajectory:
     velocities: list[np.ndarray]
 
 
-class _Reader:
-    def __init__(self, data: bytes | memoryview) -> None:
-        self.data, self.pos = memoryview(data), 4
-        if bytes(self.data[:4]) != ENCAPSULATION:
-            raise ValueError("not little-endian CDR (encapsulation header "
-                             f"{bytes(self.data[:4]).hex()})")
-
-    def need(self, n: int) -> None:
-        if self.pos + n > len(self.data):
-            raise ValueError(f"ends at byte {len(self.data)}, {n} more needed at {self.pos}")
-
-    def align(self, n: int) -> None:
-        self.pos += -(self.pos - 4) % n
-
-    def u32(self) -> int:
-        self.align(4)
-        self.need(4)
-        (value,) = _U32.unpack_from(self.data, self.pos)
-        self.pos += 4
-        return value
-
-    def time(self) -> tuple[int, int]:
-        self.align(4)
-        self.need(8)
-        sec, nsec = _TIME.unpack_from(self.data, self.pos)
-        self.pos += 8
-        return sec, nsec
-
-    def string(self) -> str:
-        n = self.u32()
-        self.need(n)
-        raw = bytes(self.data[self.pos:self.pos + n])
-        self.pos += n
-        if n < 1 or raw[-1] != 0:
-            raise ValueError(f"string without its terminator at byte {self.pos}")
-        return raw[:-1].decode()
-
-    def doubles(self) -> np.ndarray:
-        n = self.u32()
-        if not n:
-            return np.zeros(0)
-        self.align(8)
-        self.need(8 * n)
-        values = np.frombuffer(self.data, "<f8", n, self.pos)
-        self.pos += 8 * n
-        return values
-
-
-def _read_alike(r: _Reader, rest: int, positions: list, velocities: list,
+def _read_alike(r: Reader, rest: int, positions: list, velocities: list,
                 from_start: list) -> bool:
     """Read the ``rest`` points at once if they are laid out as the first was (n positions
     and n velocities, no accelerations or efforts, 8-aligned); False, having read nothing, if
@@ -174,7 +97,7 @@ def _read_alike(r: _Reader, rest: int, positions: list, velocities: list,
     if not n or len(velocities[0]) != n or (r.pos - 4) % 8:
         return False
     layout = _layout(n)
-    if r.pos + rest * layout.itemsize > len(r.data):
+    if r.pos + rest * layout.itemsize > r.end:
         return False
     points = np.frombuffer(r.data, layout, rest, r.pos)
     if not ((points["n_q"] == n).all() and (points["n_qd"] == n).all()
@@ -191,7 +114,7 @@ def parse_joint_trajectory(cdr: bytes | memoryview) -> Trajectory:
     """Read a JointTrajectory's CDR, checking only its structure; raises ValueError naming
     what is malformed."""
     try:
-        r = _Reader(cdr)
+        r = Reader(cdr)
         sec, nsec = r.time()
         frame_id = r.string()
         count = r.u32()
@@ -251,7 +174,7 @@ def encode_joint_state(stamp_ns: int, names: list[str], positions: np.ndarray,
                          f"velocities, got shapes {p.shape} and {v.shape}")
     if stamp_ns < 0 or stamp_ns >= 2**31 * NS:
         raise ValueError(f"stamp {stamp_ns} ns does not fit a header stamp")
-    w = _Writer()
+    w = Writer()
     w.time(stamp_ns)
     w.string("")
     w.u32(len(names))
@@ -267,7 +190,7 @@ def parse_joint_state(cdr: bytes | memoryview
     """Read a JointState's CDR, checking only its structure: (stamp ns, names, positions,
     velocities, efforts); raises ValueError naming what is malformed."""
     try:
-        r = _Reader(cdr)
+        r = Reader(cdr)
         sec, nsec = r.time()
         r.string()
         count = r.u32()
