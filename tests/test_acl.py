@@ -17,21 +17,24 @@ from wavegrasp.ops.launcher import free_port
 from wavegrasp.perception.main import OBJECT_KEY
 from wavegrasp.planner.main import PLAN_KEY
 from wavegrasp.runtime.bus import Bus, config_file, open_session, zenoh_config
-from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.schemas import Header, ObjectObservation, Vec3
 from wavegrasp.sim.main import ARM_STATE_KEY
 
 from conftest import ROOT, spawn, stop, wait_until, wavegrasp_cmd
 
 ACL = ROOT / "ops" / "zenoh" / "acl"
-#: A key each test login may publish on (the sim logs in as the arm).
-OWN_KEY = {"gate": DECISION_KEY, "sim": ARM_STATE_KEY, "planner": PLAN_KEY}
+ARM = ArmTopics()  # the arm's ros2_control topics: only the gate commands, only the arm reports
+COMMANDS = [ARM.arm_trajectory_key, ARM.jaw_trajectory_key]
+#: Keys each test login may publish on (the sim logs in as the arm).
+OWN_KEYS = {"gate": [DECISION_KEY, *COMMANDS], "sim": [ARM_STATE_KEY, ARM.joint_states_key],
+            "planner": [PLAN_KEY]}
 #: What each may not publish: the others' reserved keys and wildcards that would reach them.
 FORGERIES = {
-    "gate": [ARM_STATE_KEY, "wavegrasp/sim/*", "wavegrasp/**"],
-    "sim": [DECISION_KEY, "wavegrasp/gate/*", "wavegrasp/**"],
+    "gate": [ARM_STATE_KEY, "wavegrasp/sim/*", "wavegrasp/**", ARM.joint_states_key, "**"],
+    "sim": [DECISION_KEY, "wavegrasp/gate/*", "wavegrasp/**", *COMMANDS, "arm/**"],
     "planner": [DECISION_KEY, ARM_STATE_KEY, "wavegrasp/gate/*", "wavegrasp/sim/*",
-                "wavegrasp/**"],
+                "wavegrasp/**", *COMMANDS, ARM.joint_states_key, "jaw/**"],
 }
 
 
@@ -66,7 +69,7 @@ class Watcher:
     def __init__(self, session: zenoh.Session) -> None:
         self.samples: list[tuple[str, bytes]] = []
         self.sub = session.declare_subscriber(
-            "wavegrasp/**", lambda s: self.samples.append((str(s.key_expr), s.payload.to_bytes())))
+            "**", lambda s: self.samples.append((str(s.key_expr), s.payload.to_bytes())))
 
     def payloads(self) -> list[bytes]:
         return [payload for _, payload in list(self.samples)]
@@ -85,18 +88,20 @@ def delivered(sender: Bus, key: str, watcher: Watcher, timeout: float = 5.0) -> 
     return wait_until(seen, timeout=timeout, period=0.1)
 
 
-def test_only_the_gate_decides_and_only_the_arm_reports_its_state(endpoint: str) -> None:
-    buses = {name: Bus(settings(name, endpoint)) for name in ["recorder", *OWN_KEY]}
+def test_only_the_gate_decides_and_commands_and_only_the_arm_reports_its_state(
+        endpoint: str) -> None:
+    buses = {name: Bus(settings(name, endpoint)) for name in ["recorder", *OWN_KEYS]}
     try:
         watcher = Watcher(buses["recorder"].session)  # another process's view, via the router
-        for name, key in OWN_KEY.items():
-            assert delivered(buses[name], key, watcher), f"{name} cannot publish {key}"
+        for name, keys in OWN_KEYS.items():
+            for key in keys:
+                assert delivered(buses[name], key, watcher), f"{name} cannot publish {key}"
         for name, keys in FORGERIES.items():
             for key in keys:
                 buses[name].publish_bytes(key, f"forged by {name} on {key}".encode())
             # Samples from one session keep their order through the router: a forgery let
             # through would arrive before this marker.
-            assert delivered(buses[name], OWN_KEY[name], watcher, timeout=2.0)
+            assert delivered(buses[name], OWN_KEYS[name][0], watcher, timeout=2.0)
         forged = [(k, p) for k, p in list(watcher.samples) if p.startswith(b"forged")]
         assert forged == []
     finally:
