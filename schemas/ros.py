@@ -4,8 +4,7 @@ The pydantic models are the one source: :func:`definitions` derives each ``.msg`
 model (``schemas/msg/NAME.msg`` holds them for colcon; ``python -m wavegrasp.schemas.export``
 writes them, and a test fails while they differ), and :func:`to_cdr` / :func:`from_cdr`
 convert between a model and its CDR bytes (by :mod:`wavegrasp.schemas.cdr`, compiled per
-model; :func:`rosbags_to_cdr` / :func:`rosbags_fields` do it through rosbags' serializer, the
-reference it is tested against). Mapping, field by field:
+model; tested against rosbags' serializer of the same definitions). Mapping, field by field:
 
 - ``header`` (:class:`Header`) -> ``std_msgs/Header header`` (its ``stamp`` from ``stamp_ns``,
   ``frame_id``) and ``wavegrasp_msgs/Trace trace`` (``seq`` and the ``hops``): ROS tools find
@@ -26,7 +25,6 @@ from __future__ import annotations
 import inspect
 import types
 import typing
-from collections.abc import Callable
 from functools import cache
 from typing import Any, Literal
 
@@ -180,142 +178,6 @@ def warm_up() -> None:
     compile_all()
 
 
-# -- model -> rosbags message ----------------------------------------------------------------
-Convert = Callable[[Any], Any]
-
-
-def _to_ros(annotation: Any, store: Typestore) -> Convert | None:
-    """A function from a model's field value to the rosbags value of its .msg field; None
-    where the value is the same (a number, a flag, a text)."""
-    annotation = _plain(annotation)
-    inner = _optional(annotation)
-    if inner is not None:
-        if inner in DTYPES:
-            dtype, empty = DTYPES[inner], np.empty(0, DTYPES[inner])  # the serializer only reads
-            return lambda v: empty if v is None else np.array((v,), dtype)
-        one = _to_ros(inner, store) or (lambda v: v)
-        return lambda v: [] if v is None else [one(v)]
-    origin = typing.get_origin(annotation)
-    if origin is list:
-        item = _item(annotation, 0)
-        if item in DTYPES:
-            dtype = DTYPES[item]
-            return lambda v: np.asarray(v, dtype=dtype)
-        one = _to_ros(item, store)
-        return None if one is None else lambda v: [one(x) for x in v]
-    if origin is dict:
-        return _dict_to_ros(_item(annotation, 1), store)
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return _model_to_ros(annotation, store)
-    return None
-
-
-def _dict_to_ros(value: Any, store: Typestore) -> Convert:
-    entry = _entry(value)
-    cls = store.types[entry.replace("/", "/msg/") if "/" in entry else msgtype(entry)]
-    if entry != "ValueEntry":
-        cast = {"FloatEntry": float, "CountEntry": int}.get(entry, str)
-        return lambda d: [cls(k, cast(v)) for k, v in d.items()]
-
-    def one(k: str, v: float | str | bool) -> Any:
-        if isinstance(v, bool):
-            return cls(k, FLAG, 0.0, "", v)
-        if isinstance(v, str):
-            return cls(k, TEXT, 0.0, v, False)
-        return cls(k, NUMBER, float(v), "", False)
-    return lambda d: [one(k, v) for k, v in d.items()]
-
-
-@cache
-def _model_to_ros(model: type[BaseModel], store: Typestore) -> Convert:
-    cls = store.types[STANDARD.get(model, msgtype(model.__name__))]
-    header = _header_to_ros(store)
-    parts = [(name, header if field.annotation is Header else _to_ros(field.annotation, store))
-             for name, field in model.model_fields.items()]
-
-    def convert(msg: BaseModel) -> Any:
-        args: list[Any] = []
-        for name, f in parts:
-            if f is None:
-                args.append(getattr(msg, name))
-            elif f is header:  # two fields: header and trace
-                args.extend(f(getattr(msg, name)))
-            else:
-                args.append(f(getattr(msg, name)))
-        return cls(*args)
-    return convert
-
-
-def _header_to_ros(store: Typestore) -> Callable[[Header], tuple[Any, Any]]:
-    ros_header = store.types["std_msgs/msg/Header"]
-    time_ = store.types["builtin_interfaces/msg/Time"]
-    trace, hop = store.types[msgtype("Trace")], store.types[msgtype("Hop")]
-
-    def convert(h: Header) -> tuple[Any, Any]:
-        sec, nanosec = divmod(h.stamp_ns, 1_000_000_000)
-        return (ros_header(time_(sec, nanosec), h.frame_id),
-                trace(h.seq, [hop(x.service, x.recv_ns, x.sent_ns) for x in h.trace]))
-    return convert
-
-
-# -- rosbags message -> model ----------------------------------------------------------------
-def _from_ros(annotation: Any) -> Convert | None:
-    """A function from a rosbags field value to the value the model's field validates; None
-    where it is that value already (rosbags gives numbers, flags and texts as Python's)."""
-    annotation = _plain(annotation)
-    inner = _optional(annotation)
-    if inner is not None:
-        if inner in DTYPES:
-            return lambda v: v.tolist()[0] if len(v) else None
-        one = _from_ros(inner) or (lambda v: v)
-        return lambda v: one(v[0]) if len(v) else None
-    origin = typing.get_origin(annotation)
-    if origin is list:
-        item = _item(annotation, 0)
-        if item in DTYPES:
-            return lambda v: v.tolist()
-        one = _from_ros(item)
-        return None if one is None else lambda v: [one(x) for x in v]
-    if origin is dict:
-        if _entry(_item(annotation, 1)) == "ValueEntry":
-            return lambda v: {e.key: (e.number, e.text, e.flag)[e.kind] if e.kind <= FLAG
-                              else _bad_kind(e) for e in v}
-        return lambda v: {e.key: e.value for e in v}
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return _model_from_ros(annotation)
-    return None
-
-
-def _bad_kind(entry: Any) -> None:
-    raise ValueError(f"ValueEntry {entry.key!r}: kind {entry.kind} is none of 0, 1, 2")
-
-
-@cache
-def _model_from_ros(model: type[BaseModel]) -> Convert:
-    parts = [(name, _header_from_ros if field.annotation is Header else
-              _from_ros(field.annotation)) for name, field in model.model_fields.items()]
-
-    def convert(ros: Any) -> dict[str, Any]:
-        out = {}
-        for name, f in parts:
-            if f is None:
-                out[name] = getattr(ros, name)
-            elif f is _header_from_ros:
-                out[name] = f(ros)
-            else:
-                out[name] = f(getattr(ros, name))
-        return out
-    return convert
-
-
-def _header_from_ros(ros: Any) -> dict[str, Any]:
-    stamp = ros.header.stamp
-    return {"seq": ros.trace.seq, "stamp_ns": stamp.sec * 1_000_000_000 + stamp.nanosec,
-            "frame_id": ros.header.frame_id,
-            "trace": [{"service": h.service, "recv_ns": h.recv_ns, "sent_ns": h.sent_ns}
-                      for h in ros.trace.hops]}
-
-
 # -- the codec -------------------------------------------------------------------------------
 def to_cdr(msg: BaseModel) -> bytes:
     """``msg`` as little-endian CDR of its ``wavegrasp_msgs`` type (with the 4-byte header),
@@ -335,16 +197,3 @@ def from_cdr(data: bytes | memoryview, model: type[BaseModel]) -> BaseModel:
     except ValueError as exc:
         raise ValueError(f"not a valid {msgtype(model.__name__)}: {exc}") from None
     return model.model_validate(fields)
-
-
-def rosbags_to_cdr(msg: BaseModel) -> bytes:
-    """``msg`` as CDR by rosbags' serializer: what :func:`to_cdr` must write."""
-    store = typestore()
-    model = type(msg)
-    return bytes(store.serialize_cdr(_model_to_ros(model, store)(msg),
-                                     msgtype(model.__name__)))
-
-
-def rosbags_fields(data: bytes | memoryview, model: type[BaseModel]) -> dict[str, Any]:
-    """``model``'s fields read by rosbags' deserializer: what :func:`from_cdr` must read."""
-    return _model_from_ros(model)(typestore().deserialize_cdr(data, msgtype(model.__name__)))
