@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel
 
-from wavegrasp.schemas import MESSAGE_TYPES, Header
+from wavegrasp.schemas import MESSAGE_TYPES, Header, Hop
 from wavegrasp.schemas.ros import DTYPES, FLAG, NUMBER, TEXT, _entry, _item, _optional, _plain
 
 ENCAPSULATION = b"\x00\x01\x00\x00"
@@ -121,177 +121,345 @@ class Reader:
         return n
 
 
-Encode = Callable[[Writer, Any], None]
-Decode = Callable[[Reader], Any]
+# -- the codecs, generated per model -----------------------------------------------------------
+# Each model's reader and writer is Python source made once from its fields and compiled:
+# numbers that lie at fixed offsets from each other (the same or a smaller alignment than the
+# first's) are one struct call, a number array another, a sequence of models a loop with
+# their fields inline; strings, optionals and dicts a helper call each. Against a closure per
+# field (itself 3-5x sooner than rosbags') it reads a plan of 142 samples in 250 us, not 396
+# (pydantic's JSON: 321 us with the validation, which here comes after: 240 us), writes it in
+# 178 us, not 291, and a prediction in 30 and 26 us, not 71 and 57.
+Read = Callable[[bytes, int], tuple[Any, int]]
+Write = Callable[[bytearray, Any], None]
 
 
-def _scalar(kind: Any) -> tuple[Encode, Decode]:
+def _count(d: bytes, p: int, least_bytes: int) -> tuple[int, int]:
+    """A sequence's length at ``p`` (aligned to 4), refused when the rest cannot hold that
+    many elements of ``least_bytes`` each; returns it and the position after it."""
+    p += (4 - p) & 3
+    n = _U32.unpack_from(d, p)[0]
+    p += 4
+    if n * least_bytes > len(d) - p:
+        raise ValueError(f"sequence of {n} at byte {p} longer than the message")
+    return n, p
+
+
+def _read_str(d: bytes, p: int) -> tuple[str, int]:
+    p += (4 - p) & 3
+    n = _U32.unpack_from(d, p)[0]
+    p += 4
+    if n < 1 or p + n > len(d) or d[p + n - 1] != 0:
+        raise ValueError(f"string of {n} bytes at byte {p} past the end or unterminated")
+    return d[p:p + n - 1].decode(), p + n
+
+
+def _write_str(b: bytearray, text: str) -> None:
+    data = text.encode()
+    b += _ZEROS[(4 - len(b)) & 3]
+    b += _U32.pack(len(data) + 1)
+    b += data
+    b.append(0)
+
+
+def _read_seq(one: Read, least_bytes: int) -> Read:
+    def read(d: bytes, p: int) -> tuple[list, int]:
+        n, p = _count(d, p, least_bytes)
+        out = []
+        for _ in range(n):
+            x, p = one(d, p)
+            out.append(x)
+        return out, p
+    return read
+
+
+def _write_seq(one: Write) -> Write:
+    def write(b: bytearray, values: Any) -> None:
+        b += _ZEROS[(4 - len(b)) & 3]
+        b += _U32.pack(len(values))
+        for x in values:
+            one(b, x)
+    return write
+
+
+def _read_opt(one: Read) -> Read:
+    """``X[<=1]``: a count of 0 (None) or 1 and the value."""
+    def read(d: bytes, p: int) -> tuple[Any, int]:
+        n, p = _count(d, p, 1)
+        if n > 1:
+            raise ValueError(f"bounded sequence of {n} at byte {p}, at most 1")
+        return one(d, p) if n else (None, p)
+    return read
+
+
+def _write_opt(one: Write) -> Write:
+    def write(b: bytearray, value: Any) -> None:
+        b += _ZEROS[(4 - len(b)) & 3]
+        b += _U32.pack(0 if value is None else 1)
+        if value is not None:
+            one(b, value)
+    return write
+
+
+class _Source:
+    """Python source of one model's reader or writer, numbers gathered into struct calls."""
+
+    def __init__(self, writing: bool) -> None:
+        self.writing = writing
+        self.lines: list[str] = []
+        self.indent = ""
+        self.names: dict[str, Any] = {"_Z": _ZEROS, "_U32": _U32, "_count": _count,
+                                      "_pack": struct.pack, "_unpack": struct.unpack_from}
+        self.run: list[tuple[str, str]] = []  # (struct code with its padding, value)
+        self.run_align = self.run_at = 0
+
+    def emit(self, line: str) -> None:
+        self.lines.append(self.indent + line)
+
+    def name(self, value: Any) -> str:
+        """A name for ``value`` in the generated code's globals."""
+        key = f"g{len(self.names)}"
+        self.names[key] = value
+        return key
+
+    def number(self, code: str, size: int, value: str = "") -> str:
+        """A number of struct ``code`` (``value``, an expression, when writing); returns the
+        variable it is read into when reading."""
+        if not self.run or size > self.run_align:
+            self.flush()
+            self.run_align, self.run_at = size, 0
+        pad = (-self.run_at) & (size - 1)
+        var = f"v{len(self.lines)}_{len(self.run)}"
+        self.run.append(("x" * pad + code, value if self.writing else var))
+        self.run_at += pad + size
+        return var
+
+    def flush(self) -> None:
+        """Write or read the numbers gathered: aligned once, then one struct call."""
+        if not self.run:
+            return
+        s = struct.Struct("<" + "".join(code for code, _ in self.run))
+        values, fmt = ", ".join(v for _, v in self.run), self.name(s)
+        if self.writing:
+            if self.run_align > 1:
+                self.emit(f"b += _Z[(4 - len(b)) & {self.run_align - 1}]")
+            self.emit(f"b += {fmt}.pack({values})")
+        else:
+            if self.run_align > 1:
+                self.emit(f"p += (4 - p) & {self.run_align - 1}")
+            self.emit(f"{values}, = {fmt}.unpack_from(d, p)")
+            self.emit(f"p += {s.size}")
+        self.run = []
+
+    def call(self, fn: Any, value: str = "") -> str:
+        """A helper reading or writing the next item (a string, a sequence...)."""
+        self.flush()
+        if self.writing:
+            self.emit(f"{self.name(fn)}(b, {value})")
+            return ""
+        var = f"v{len(self.lines)}"
+        self.emit(f"{var}, p = {self.name(fn)}(d, p)")
+        return var
+
+    def array(self, kind: Any, value: str) -> str:
+        """``kind[]`` of a number or a flag: a count, then the values aligned (if any), at
+        once; when reading, refused if the rest cannot hold them."""
+        self.flush()
+        code = {float: "d", int: "q", bool: "?"}[kind]
+        size, var = struct.calcsize(code), f"v{len(self.lines)}"
+        if self.writing:
+            self.emit(f"{var} = {value}")
+            self.emit("b += _Z[(4 - len(b)) & 3]")
+            self.emit(f"b += _U32.pack(len({var}))")
+            if size > 1:
+                self.emit(f"if len({var}): b += _Z[(4 - len(b)) & {size - 1}]")
+            self.emit(f"b += _pack('<%d{code}' % len({var}), *{var})")
+            return ""
+        self.emit(f"n, p = _count(d, p, {size})")
+        if size > 1:
+            self.emit(f"if n: p += (4 - p) & {size - 1}")
+        self.emit(f"{var} = list(_unpack('<%d{code}' % n, d, p))")
+        self.emit(f"p += n * {size}")
+        return var
+
+    def each(self, model: type[BaseModel], value: str) -> str:
+        """A sequence of ``model``, its fields inline in a loop."""
+        self.flush()
+        var, outer = f"v{len(self.lines)}", self.indent
+        if self.writing:
+            self.emit("b += _Z[(4 - len(b)) & 3]")
+            self.emit(f"b += _U32.pack(len({value}))")
+            self.emit(f"for {var} in {value}:")
+            self.indent += "    "
+            _fields(self, model, var)
+        else:
+            self.emit(f"{var} = []")
+            self.emit("n, p = _count(d, p, 1)")
+            self.emit("for _ in range(n):")
+            self.indent += "    "
+            item = _fields(self, model, var)
+            self.flush()
+            self.emit(f"{var}.append({item})")
+        self.flush()
+        self.indent = outer
+        return var
+
+    def compile(self, result: str, title: str) -> Any:
+        self.flush()
+        head = "def f(b, m):" if self.writing else "def f(d, p):"
+        tail = [] if self.writing else [f"return {result}, p"]
+        code = "\n    ".join([head, *self.lines, *tail, "pass"])
+        namespace = dict(self.names)
+        exec(compile(code, f"<cdr {title}>", "exec"), namespace)  # our own source, from types
+        return namespace["f"]
+
+
+def _scalar(src: _Source, kind: Any, value: str) -> str:
     if kind is str or typing.get_origin(kind) is Literal:
-        return (lambda w, v: w.string(v)), (lambda r: r.string())
-    s = _PRIM[kind]
-
-    size, pack, unpack = s.size, s.pack, s.unpack_from
-
-    def enc(w: Writer, v: Any) -> None:
-        w.pad(size)
-        w.buf += pack(v)
-    return enc, (lambda r: unpack(r.data, r.take(size, size))[0])
+        return src.call(_write_str if src.writing else _read_str, value)
+    code = {int: "q", float: "d", bool: "?"}[kind]
+    return src.number(code, struct.calcsize(code), value)
 
 
-def _array(kind: Any) -> tuple[Encode, Decode]:
-    """``kind[]`` of a number or a flag: count, then the values aligned (if any)."""
-    dtype = np.dtype(DTYPES[kind]).newbyteorder("<")
-    size = dtype.itemsize
-
-    def enc(w: Writer, v: Any) -> None:
-        w.u32(len(v))
-        if len(v):
-            w.pad(size)
-            w.buf.extend(np.asarray(v, dtype=dtype).tobytes())
-
-    def dec(r: Reader) -> list:
-        n = r.count(size)
-        if not n:
-            return []
-        return np.frombuffer(r.data, dtype, n, r.take(n * size, size)).tolist()
-    return enc, dec
-
-
-def _sequence(one: tuple[Encode, Decode], least_bytes: int) -> tuple[Encode, Decode]:
-    enc_one, dec_one = one
-
-    def enc(w: Writer, v: Any) -> None:
-        w.u32(len(v))
-        for x in v:
-            enc_one(w, x)
-    return enc, (lambda r: [dec_one(r) for _ in range(r.count(least_bytes))])
+def _header(src: _Source, value: str) -> str:
+    """A :class:`Header` as ``std_msgs/Header header`` and ``wavegrasp_msgs/Trace trace``."""
+    hops = _codec(Hop)
+    if src.writing:
+        t = f"t{len(src.lines)}"
+        src.flush()
+        src.emit(f"{t} = divmod({value}.stamp_ns, {NS})")
+        src.number("i", 4, f"{t}[0]")
+        src.number("I", 4, f"{t}[1]")
+        src.call(_write_str, f"{value}.frame_id")
+        src.number("q", 8, f"{value}.seq")
+        src.call(_write_seq(hops[1]), f"{value}.trace")
+        return ""
+    sec, nanosec = src.number("i", 4), src.number("I", 4)
+    frame_id = src.call(_read_str)
+    seq = src.number("q", 8)
+    trace = src.call(_read_seq(hops[0], 21))
+    return (f"{{'seq': {seq}, 'stamp_ns': {sec} * {NS} + {nanosec}, "
+            f"'frame_id': {frame_id}, 'trace': {trace}}}")
 
 
-def _dict(value: Any) -> tuple[Encode, Decode]:
-    entry = _entry(value)
-    if entry == "ValueEntry":
-        num, flag = _PRIM[float], _PRIM[bool]
-
-        def enc_one(w: Writer, kv: tuple[str, Any]) -> None:
-            k, v = kv
-            w.string(k)
-            kind = FLAG if isinstance(v, bool) else TEXT if isinstance(v, str) else NUMBER
-            w.buf.extend(_U8.pack(kind))
-            w.pad(8)
-            w.buf.extend(num.pack(float(v) if kind == NUMBER else 0.0))
-            w.string(v if kind == TEXT else "")
-            w.buf.extend(flag.pack(v if kind == FLAG else False))
-
-        def dec_one(r: Reader) -> tuple[str, Any]:
-            k = r.string()
-            kind = r.data[r.take(1)]
-            number = num.unpack_from(r.data, r.take(8, 8))[0]
-            text = r.string()
-            is_set = bool(r.data[r.take(1)])
-            if kind > FLAG:
-                raise ValueError(f"ValueEntry {k!r}: kind {kind} is none of 0, 1, 2")
-            return k, (number, text, is_set)[kind]
-    else:
-        enc_value, dec_value = _scalar({"FloatEntry": float, "CountEntry": int}.get(entry, str))
-
-        def enc_one(w: Writer, kv: tuple[str, Any]) -> None:
-            w.string(kv[0])
-            enc_value(w, kv[1])
-
-        def dec_one(r: Reader) -> tuple[str, Any]:
-            return r.string(), dec_value(r)
-    enc, dec = _sequence((enc_one, dec_one), 5)
-    return (lambda w, v: enc(w, v.items())), (lambda r: dict(dec(r)))
+def _fields(src: _Source, model: type[BaseModel], value: str) -> str:
+    """Every field of ``model`` (at ``value`` when writing), nested models inline; when
+    reading, the dict expression of what was read."""
+    out = []
+    for name, field in model.model_fields.items():
+        at = f"{value}.{name}"
+        if field.annotation is Header:
+            out.append(f"{name!r}: {_header(src, at)}")
+        else:
+            out.append(f"{name!r}: {_field(src, field.annotation, at)}")
+    return "{" + ", ".join(out) + "}"
 
 
-def _field(annotation: Any) -> tuple[Encode, Decode]:
+def _field(src: _Source, annotation: Any, value: str) -> str:
     annotation = _plain(annotation)
     inner = _optional(annotation)
-    if inner is not None:
-        enc_one, dec_one = _field(inner)  # a number: X[<=1] is a count and the number
-
-        def enc(w: Writer, v: Any) -> None:
-            w.u32(0 if v is None else 1)
-            if v is not None:
-                enc_one(w, v)
-
-        def dec(r: Reader) -> Any:
-            n = r.count(1)
-            if n > 1:
-                raise ValueError(f"bounded sequence of {n} at byte {r.pos}, at most 1")
-            return dec_one(r) if n else None
-        return enc, dec
+    if inner is not None:  # a number: X[<=1] is a count and the number
+        read, write = _item_codec(inner)
+        return src.call(_write_opt(write) if src.writing else _read_opt(read), value)
     origin = typing.get_origin(annotation)
     if origin is list:
         item = _item(annotation, 0)
-        return _array(item) if item in DTYPES else _sequence(_field(item), 1)
+        if item in DTYPES:
+            return src.array(item, value)
+        if isinstance(item, type) and issubclass(item, BaseModel):
+            return src.each(item, value)
+        read, write = _item_codec(item)
+        return src.call(_write_seq(write) if src.writing else _read_seq(read, 1), value)
     if origin is dict:
-        return _dict(_item(annotation, 1))
+        read, write = _dict(_item(annotation, 1))
+        return src.call(write if src.writing else read, value)
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return _codec(annotation)
-    return _scalar(annotation)
+        return _fields(src, annotation, value)
+    return _scalar(src, annotation, value)
 
 
-def _header() -> tuple[Encode, Decode]:
-    """A :class:`Header` as ``std_msgs/Header header`` and ``wavegrasp_msgs/Trace trace``."""
-    i64 = _PRIM[int]
+def _item_codec(kind: Any) -> tuple[Read, Write]:
+    """Reader and writer of one element of a sequence or optional."""
+    if isinstance(kind, type) and issubclass(kind, BaseModel):
+        return _codec(kind)
+    return _compile(lambda src, value: _field(src, kind, value), repr(kind))
 
-    def enc(w: Writer, h: Header) -> None:
-        w.time(h.stamp_ns)
-        w.string(h.frame_id)
-        w.pad(8)
-        w.buf.extend(i64.pack(h.seq))
-        w.u32(len(h.trace))
-        for hop in h.trace:
-            w.string(hop.service)
-            w.pad(8)
-            w.buf.extend(i64.pack(hop.recv_ns))
-            w.buf.extend(i64.pack(hop.sent_ns))
 
-    def dec(r: Reader) -> dict[str, Any]:
-        sec, nanosec = r.time()
-        frame_id = r.string()
-        seq = i64.unpack_from(r.data, r.take(8, 8))[0]
-        hops = []
-        for _ in range(r.count(21)):
-            service = r.string()
-            recv_ns, sent_ns = struct.unpack_from("<qq", r.data, r.take(16, 8))
-            hops.append({"service": service, "recv_ns": recv_ns, "sent_ns": sent_ns})
-        return {"seq": seq, "stamp_ns": sec * NS + nanosec, "frame_id": frame_id,
-                "trace": hops}
-    return enc, dec
+def _dict(value: Any) -> tuple[Read, Write]:
+    """A dict as a sequence of entries of the type its values take (``_entry``)."""
+    entry = _entry(value)
+    if entry == "ValueEntry":
+        number, flag = _PRIM[float], _PRIM[bool]
+
+        def write_one(b: bytearray, kv: tuple[str, Any]) -> None:
+            k, v = kv
+            kind = FLAG if isinstance(v, bool) else TEXT if isinstance(v, str) else NUMBER
+            _write_str(b, k)
+            b.append(kind)
+            b += _ZEROS[(4 - len(b)) & 7]
+            b += number.pack(float(v) if kind == NUMBER else 0.0)
+            _write_str(b, v if kind == TEXT else "")
+            b += flag.pack(v if kind == FLAG else False)
+
+        def read_one(d: bytes, p: int) -> tuple[tuple[str, Any], int]:
+            k, p = _read_str(d, p)
+            kind = d[p]
+            p += 1 + ((3 - p) & 7)
+            x = number.unpack_from(d, p)[0]
+            text, p = _read_str(d, p + 8)
+            if kind > FLAG:
+                raise ValueError(f"ValueEntry {k!r}: kind {kind} is none of 0, 1, 2")
+            return (k, (x, text, bool(d[p]))[kind]), p + 1
+    else:
+        kind = {"FloatEntry": float, "CountEntry": int}.get(entry, str)
+        read_value, write_value = _item_codec(kind)
+
+        def write_one(b: bytearray, kv: tuple[str, Any]) -> None:
+            _write_str(b, kv[0])
+            write_value(b, kv[1])
+
+        def read_one(d: bytes, p: int) -> tuple[tuple[str, Any], int]:
+            k, p = _read_str(d, p)
+            v, p = read_value(d, p)
+            return (k, v), p
+    read, write = _read_seq(read_one, 5), _write_seq(write_one)
+
+    def read_dict(d: bytes, p: int) -> tuple[dict, int]:
+        pairs, p = read(d, p)
+        return dict(pairs), p
+    return read_dict, (lambda b, v: write(b, v.items()))
+
+
+def _compile(emit: Callable[[_Source, str], str], title: str) -> tuple[Read, Write]:
+    reader, writer = _Source(writing=False), _Source(writing=True)
+    result = emit(reader, "m")
+    emit(writer, "m")
+    return reader.compile(result, title), writer.compile("", title)
 
 
 @cache
-def _codec(model: type[BaseModel]) -> tuple[Encode, Decode]:
-    """The writer and reader of ``model``'s fields, in order (a dict for pydantic)."""
-    parts = [(name, _header() if field.annotation is Header else _field(field.annotation))
-             for name, field in model.model_fields.items()]
-
-    def enc(w: Writer, msg: BaseModel) -> None:
-        for name, (enc_field, _dec) in parts:
-            enc_field(w, getattr(msg, name))
-
-    def dec(r: Reader) -> dict[str, Any]:
-        return {name: dec_field(r) for name, (_enc, dec_field) in parts}
-    return enc, dec
+def _codec(model: type[BaseModel]) -> tuple[Read, Write]:
+    """The reader (a dict for pydantic) and the writer of ``model``'s fields, in order."""
+    return _compile(lambda src, value: _fields(src, model, value), model.__name__)
 
 
 def encode(msg: BaseModel) -> bytes:
     """``msg`` as CDR of its ``wavegrasp_msgs`` type, with the encapsulation header."""
-    w = Writer()
+    b = bytearray(ENCAPSULATION)
     try:
-        _codec(type(msg))[0](w, msg)
+        _codec(type(msg))[1](b, msg)
     except struct.error as exc:  # a number its CDR type cannot hold
         raise ValueError(f"{type(msg).__name__}: {exc}") from None
-    return bytes(w.buf)
+    return bytes(b)
 
 
 def decode(data: bytes | memoryview, model: type[BaseModel]) -> dict[str, Any]:
     """The fields of ``model`` read from its CDR ``data``, for ``model.model_validate``;
     raises ValueError naming what is malformed."""
+    d = data if isinstance(data, bytes) else bytes(data)
+    if d[:4] != ENCAPSULATION:
+        raise ValueError(f"not little-endian CDR (encapsulation header {d[:4].hex()})")
     try:
-        return _codec(model)[1](Reader(data))
+        return _codec(model)[0](d, 4)[0]
     except (struct.error, UnicodeDecodeError, IndexError) as exc:
         raise ValueError(str(exc)) from None
 
