@@ -1,19 +1,20 @@
 """Our messages to and from CDR bytes directly, byte for byte what rosbags writes.
 
-rosbags' way (:mod:`wavegrasp.schemas.ros` builds its message objects from the model, then
-serialises them) cost 20-80 us a small message against 2-15 us for pydantic's JSON, and a
-lockstep frame carries dozens (the clock to every service, each one's acknowledgement...):
-3.4 s more CPU on a 1042-frame run, every service 0.3-0.7 s (``wavegrasp eval``'s summaries).
-Here each model's fields are compiled once into writers and readers of the same layout
-(little-endian CDR, XCDR1: primitives aligned to their size from the end of the 4-byte
-encapsulation header, counts and string lengths as uint32, an array's values aligned only when
-there are any), following :mod:`wavegrasp.schemas.ros`'s mapping field for field. A test
-compares the bytes with rosbags' for every message type.
+Each model's writer and reader is generated once from its fields (little-endian CDR, XCDR1:
+primitives aligned to their size from the end of the 4-byte encapsulation header, counts and
+string lengths as uint32, an array's values aligned only when there are any), following the
+mapping :mod:`wavegrasp.schemas.ros` documents; the annotation helpers that mapping is made of
+live here, so both modules read types alike. A lockstep frame carries dozens of our messages
+(the clock to every service, each one's acknowledgement...), so their cost is the
+experiment's: rosbags' objects cost 20-80 us a small message, pydantic's JSON 2-15 us, this
+2-7 us (the validation, after, as JSON's). A test compares the bytes with rosbags' for every
+message type and refuses every truncation.
 """
 
 from __future__ import annotations
 
 import struct
+import types
 import typing
 from collections.abc import Callable
 from functools import cache
@@ -23,11 +24,48 @@ import numpy as np
 from pydantic import BaseModel
 
 from wavegrasp.schemas import MESSAGE_TYPES, Header, Hop
-from wavegrasp.schemas.ros import DTYPES, FLAG, NUMBER, TEXT, _entry, _item, _optional, _plain
+
+NUMBER, TEXT, FLAG = 0, 1, 2
+#: The struct code of each number type (int64, float64, bool in CDR).
+NUMBERS = {float: "d", int: "q", bool: "?"}
+
+
+def _plain(annotation: Any) -> Any:
+    """``annotation`` without ``Annotated``'s constraints (``Count`` is an int)."""
+    if typing.get_origin(annotation) is typing.Annotated:
+        return typing.get_args(annotation)[0]
+    return annotation
+
+
+def _optional(annotation: Any) -> Any | None:
+    """X for ``X | None``, else None."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = typing.get_args(annotation)
+        if len(args) == 2 and type(None) in args:
+            return _plain(next(a for a in args if a is not type(None)))
+    return None
+
+
+def _item(annotation: Any, k: int) -> Any:
+    """The k-th type argument of a list or dict annotation, plain."""
+    return _plain(typing.get_args(annotation)[k])
+
+
+def _entry(value: Any) -> str:
+    """The entry type a dict with values of type ``value`` travels as."""
+    if value is float:
+        return "FloatEntry"
+    if value is int:
+        return "CountEntry"
+    if value is str:
+        return "diagnostic_msgs/KeyValue"
+    if set(typing.get_args(value)) == {float, str, bool}:
+        return "ValueEntry"
+    raise TypeError(f"no ROS 2 entry type for dict values of {value!r}")
+
 
 ENCAPSULATION = b"\x00\x01\x00\x00"
 NS = 1_000_000_000
-_PRIM = {int: struct.Struct("<q"), float: struct.Struct("<d"), bool: struct.Struct("<?")}
 _U32, _TIME, _U8 = struct.Struct("<I"), struct.Struct("<iI"), struct.Struct("<B")
 
 
@@ -144,12 +182,16 @@ def _count(d: bytes, p: int, least_bytes: int) -> tuple[int, int]:
     return n, p
 
 
+def _bad_string(n: int, p: int) -> None:
+    raise ValueError(f"string of {n} bytes at byte {p} past the end or unterminated")
+
+
 def _read_str(d: bytes, p: int) -> tuple[str, int]:
     p += (4 - p) & 3
     n = _U32.unpack_from(d, p)[0]
     p += 4
     if n < 1 or p + n > len(d) or d[p + n - 1] != 0:
-        raise ValueError(f"string of {n} bytes at byte {p} past the end or unterminated")
+        _bad_string(n, p)
     return d[p:p + n - 1].decode(), p + n
 
 
@@ -208,6 +250,7 @@ class _Source:
         self.lines: list[str] = []
         self.indent = ""
         self.names: dict[str, Any] = {"_Z": _ZEROS, "_U32": _U32, "_count": _count,
+                                      "_bad_string": _bad_string,
                                       "_pack": struct.pack, "_unpack": struct.unpack_from}
         self.run: list[tuple[str, str]] = []  # (struct code with its padding, value)
         self.run_align = self.run_at = 0
@@ -264,7 +307,7 @@ class _Source:
         """``kind[]`` of a number or a flag: a count, then the values aligned (if any), at
         once; when reading, refused if the rest cannot hold them."""
         self.flush()
-        code = {float: "d", int: "q", bool: "?"}[kind]
+        code = NUMBERS[kind]
         size, var = struct.calcsize(code), f"v{len(self.lines)}"
         if self.writing:
             self.emit(f"{var} = {value}")
@@ -281,8 +324,28 @@ class _Source:
         self.emit(f"p += n * {size}")
         return var
 
-    def each(self, model: type[BaseModel], value: str) -> str:
-        """A sequence of ``model``, its fields inline in a loop."""
+    def string(self, value: str) -> str:
+        """A string: its length with the NUL (aligned to 4), the bytes, the NUL."""
+        self.flush()
+        var = f"v{len(self.lines)}"
+        if self.writing:
+            self.emit(f"{var} = {value}.encode()")
+            self.emit("b += _Z[(4 - len(b)) & 3]")
+            self.emit(f"b += _U32.pack(len({var}) + 1)")
+            self.emit(f"b += {var}")
+            self.emit("b.append(0)")
+            return ""
+        self.emit("p += (4 - p) & 3")
+        self.emit("n, = _U32.unpack_from(d, p)")
+        self.emit("p += 4")
+        self.emit("if n < 1 or p + n > len(d) or d[p + n - 1]: _bad_string(n, p)")
+        self.emit(f"{var} = d[p:p + n - 1].decode()")
+        self.emit("p += n")
+        return var
+
+    def each(self, model: type[BaseModel], value: str, least_bytes: int = 1) -> str:
+        """A sequence of ``model`` (each at least ``least_bytes``), its fields inline in a
+        loop."""
         self.flush()
         var, outer = f"v{len(self.lines)}", self.indent
         if self.writing:
@@ -293,7 +356,7 @@ class _Source:
             _fields(self, model, var)
         else:
             self.emit(f"{var} = []")
-            self.emit("n, p = _count(d, p, 1)")
+            self.emit(f"n, p = _count(d, p, {least_bytes})")
             self.emit("for _ in range(n):")
             self.indent += "    "
             item = _fields(self, model, var)
@@ -315,28 +378,27 @@ class _Source:
 
 def _scalar(src: _Source, kind: Any, value: str) -> str:
     if kind is str or typing.get_origin(kind) is Literal:
-        return src.call(_write_str if src.writing else _read_str, value)
-    code = {int: "q", float: "d", bool: "?"}[kind]
+        return src.string(value)
+    code = NUMBERS[kind]
     return src.number(code, struct.calcsize(code), value)
 
 
 def _header(src: _Source, value: str) -> str:
     """A :class:`Header` as ``std_msgs/Header header`` and ``wavegrasp_msgs/Trace trace``."""
-    hops = _codec(Hop)
     if src.writing:
         t = f"t{len(src.lines)}"
         src.flush()
         src.emit(f"{t} = divmod({value}.stamp_ns, {NS})")
         src.number("i", 4, f"{t}[0]")
         src.number("I", 4, f"{t}[1]")
-        src.call(_write_str, f"{value}.frame_id")
+        src.string(f"{value}.frame_id")
         src.number("q", 8, f"{value}.seq")
-        src.call(_write_seq(hops[1]), f"{value}.trace")
+        src.each(Hop, f"{value}.trace")
         return ""
     sec, nanosec = src.number("i", 4), src.number("I", 4)
-    frame_id = src.call(_read_str)
+    frame_id = src.string("")
     seq = src.number("q", 8)
-    trace = src.call(_read_seq(hops[0], 21))
+    trace = src.each(Hop, "", 21)
     return (f"{{'seq': {seq}, 'stamp_ns': {sec} * {NS} + {nanosec}, "
             f"'frame_id': {frame_id}, 'trace': {trace}}}")
 
@@ -363,7 +425,7 @@ def _field(src: _Source, annotation: Any, value: str) -> str:
     origin = typing.get_origin(annotation)
     if origin is list:
         item = _item(annotation, 0)
-        if item in DTYPES:
+        if item in NUMBERS:
             return src.array(item, value)
         if isinstance(item, type) and issubclass(item, BaseModel):
             return src.each(item, value)
@@ -388,7 +450,7 @@ def _dict(value: Any) -> tuple[Read, Write]:
     """A dict as a sequence of entries of the type its values take (``_entry``)."""
     entry = _entry(value)
     if entry == "ValueEntry":
-        number, flag = _PRIM[float], _PRIM[bool]
+        number, flag = struct.Struct("<d"), struct.Struct("<?")
 
         def write_one(b: bytearray, kv: tuple[str, Any]) -> None:
             k, v = kv

@@ -23,17 +23,16 @@ Fields a sender adds beyond its model (``extra="allow"``) do not travel in CDR.
 from __future__ import annotations
 
 import inspect
-import types
 import typing
 from functools import cache
 from typing import Any, Literal
 
-import numpy as np
 from pydantic import BaseModel
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from wavegrasp.schemas import MESSAGE_TYPES, ROS_KEYS, Header, Hop, Pose, Quaternion, Vec3
+from wavegrasp.schemas.cdr import _entry, _item, _optional, _plain, compile_all, decode, encode
 
 PACKAGE = "wavegrasp_msgs"
 #: Models that are ROS 2 standard types, field for field.
@@ -49,47 +48,9 @@ ENTRY_TEXT = {
     "Trace": "# The message's sequence number and every service it went through.\n"
              "int64 seq\nHop[] hops\n",
 }
-NUMBER, TEXT, FLAG = 0, 1, 2
-DTYPES = {float: np.float64, int: np.int64, bool: np.bool_}
-
-
 def msgtype(name: str) -> str:
     """``wavegrasp_msgs/msg/<name>``: the ROS 2 type of model or entry ``name``."""
     return f"{PACKAGE}/msg/{name}"
-
-
-def _plain(annotation: Any) -> Any:
-    """``annotation`` without ``Annotated``'s constraints (``Count`` is an int)."""
-    if typing.get_origin(annotation) is typing.Annotated:
-        return typing.get_args(annotation)[0]
-    return annotation
-
-
-def _optional(annotation: Any) -> Any | None:
-    """X for ``X | None``, else None."""
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = typing.get_args(annotation)
-        if len(args) == 2 and type(None) in args:
-            return _plain(next(a for a in args if a is not type(None)))
-    return None
-
-
-def _item(annotation: Any, k: int) -> Any:
-    """The k-th type argument of a list or dict annotation, plain."""
-    return _plain(typing.get_args(annotation)[k])
-
-
-def _entry(value: Any) -> str:
-    """The entry type a dict with values of type ``value`` travels as."""
-    if value is float:
-        return "FloatEntry"
-    if value is int:
-        return "CountEntry"
-    if value is str:
-        return "diagnostic_msgs/KeyValue"
-    if set(typing.get_args(value)) == {float, str, bool}:
-        return "ValueEntry"
-    raise TypeError(f"no ROS 2 entry type for dict values of {value!r}")
 
 
 def _ros_type(annotation: Any) -> str:
@@ -173,8 +134,6 @@ def warm_up() -> None:
     store = typestore()
     for name in set(ROS_KEYS.values()) - BY_HAND:  # ours are by hand too (schemas/cdr.py)
         store.get_msgdef(name)
-    from wavegrasp.schemas.cdr import compile_all
-
     compile_all()
 
 
@@ -182,18 +141,14 @@ def warm_up() -> None:
 def to_cdr(msg: BaseModel) -> bytes:
     """``msg`` as little-endian CDR of its ``wavegrasp_msgs`` type (with the 4-byte header),
     written by :mod:`wavegrasp.schemas.cdr` (rosbags' bytes, several times sooner)."""
-    from wavegrasp.schemas.cdr import encode  # it builds on this module's mapping
-
     return encode(msg)
 
 
 def from_cdr(data: bytes | memoryview, model: type[BaseModel]) -> BaseModel:
     """``model`` from CDR ``data``; ValueError (or pydantic's ValidationError) naming what is
     wrong when the bytes are not a valid message of its type."""
-    from wavegrasp.schemas.cdr import decode
-
     try:
         fields = decode(data, model)
     except ValueError as exc:
         raise ValueError(f"not a valid {msgtype(model.__name__)}: {exc}") from None
-    return model.model_validate(fields)
+    return model.__pydantic_validator__.validate_python(fields)  # model_validate, 1 us sooner
