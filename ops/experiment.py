@@ -7,7 +7,9 @@ ends at a success or after ``--attempts`` attempts (or when no plan is approved 
 Lockstep makes each run repeat exactly; ``--seed`` picks the recordings. ``--seas``: the
 paper's regular waves and/or JONSWAP seas of the same significant height and peak period. Each run's
 ``run.mcap`` holds everything but the camera clouds, which are in the cached recording.
-``--jobs`` runs go side by side. Writes ``report.json``, ``report.md`` and PNG plots to ``--out``.
+``--jobs`` runs go side by side, or with ``--cluster ray://HOST:PORT`` each on whichever node
+of a Ray cluster has a CPU free (:mod:`wavegrasp.ops.cluster`). Writes ``report.json``,
+``report.md`` and PNG plots to ``--out``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from wavegrasp.ops import cluster
 from wavegrasp.ops.launcher import up
 from wavegrasp.ops.sample import cached_recording
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
@@ -260,6 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-pin", dest="pin", action="store_false",
                    help="let each run's processes use any core (default: each run on a core "
                    "of its own, the least busy)")
+    p.add_argument("--cluster", metavar="ray://HOST:PORT",
+                   help="run each run as a task on this Ray cluster (the cluster extra: pip "
+                   "install 'wavegrasp[cluster]'), its recording generated on its node; "
+                   "--jobs and --no-pin then do not apply")
     a = p.parse_args(args)
     predictors = a.predictors.split(",")
     seas = a.seas.split(",")
@@ -274,26 +281,28 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"unknown {', '.join(bad)}: predictors {', '.join(MODELS)}; seas "
                 f"{', '.join(SEAS)}; executions closed, open; waves "
                 f"{', '.join(map(str, TABLE_I))}; objects {', '.join(OBJECTS)}")
+    if a.cluster:
+        try:
+            cluster.check_address(a.cluster)
+        except ValueError as exc:
+            p.error(str(exc))
     a.out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    # Recordings first (cached; one per configuration, shared by the predictors).
     configs = [(sea, w, o) for sea in seas for w in waves for o in objects]
-    seconds = WARMUP_S + a.trials * PER_TRIAL_S
-    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
-        list(tqdm(pool.map(_recording, [(*c, a.seed, seconds) for c in configs]),
-                  total=len(configs), desc="recordings", unit="rec"))
     jobs = [(pred, x, *c) for pred in predictors for x in executions for c in configs]
-    results: list[RunResult] = []
-    with stoppable(), ThreadPoolExecutor(a.jobs) as pool:
-        futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out, a.pin)
-                   for job in jobs]
-        try:
-            for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
-                results.append(f.result())
-        except Interrupted:
-            print(f"wavegrasp eval: interrupted after {len(results)} of {len(jobs)} runs",
-                  file=sys.stderr)
-            return 130
+    results: list[RunResult] = []  # as they finish
+    try:
+        if a.cluster:
+            run_cluster(a, jobs, results)
+        else:
+            run_here(a, configs, jobs, results)
+    except Interrupted:
+        print(f"wavegrasp eval: interrupted after {len(results)} of {len(jobs)} runs",
+              file=sys.stderr)
+        return 130
+    except cluster.ClusterError as exc:
+        print(f"wavegrasp eval: {exc}", file=sys.stderr)
+        return 2
     order = {job: i for i, job in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.execution, *r.config)])
     from wavegrasp.ops.report import write_report
@@ -302,6 +311,30 @@ def main(argv: list[str] | None = None) -> int:
     write_report(a.out, results, vars(a) | {"out": str(a.out), "elapsed_s": round(elapsed, 1)})
     print((a.out / "report.md").read_text())
     return 1 if any(r.exit_code for r in results) else 0
+
+
+def run_here(a: argparse.Namespace, configs: list[tuple], jobs: list[tuple],
+             results: list[RunResult]) -> None:
+    """The runs on this machine into ``results``, ``--jobs`` at a time, the recordings made
+    first (cached; one per configuration, shared by the predictors)."""
+    seconds = WARMUP_S + a.trials * PER_TRIAL_S
+    with ProcessPoolExecutor(min(a.jobs, os.cpu_count() or 1)) as pool:  # CPU-bound
+        list(tqdm(pool.map(_recording, [(*c, a.seed, seconds) for c in configs]),
+                  total=len(configs), desc="recordings", unit="rec"))
+    with stoppable(), ThreadPoolExecutor(a.jobs) as pool:
+        futures = [pool.submit(run_one, *job, a.trials, a.attempts, a.seed, a.out, a.pin)
+                   for job in jobs]
+        for f in tqdm(as_completed(futures), total=len(futures), desc="runs", unit="run"):
+            results.append(f.result())
+
+
+def run_cluster(a: argparse.Namespace, jobs: list[tuple], results: list[RunResult]) -> None:
+    """The runs into ``results`` as tasks on the Ray cluster ``a.cluster``, each making its
+    own recording on its node, none pinned (Ray gives each task its CPU)."""
+    out = a.out.resolve()  # a task does not start in our folder
+    tasks = [(*job, a.trials, a.attempts, a.seed, out, False) for job in jobs]
+    with stoppable():
+        cluster.run_on_cluster(a.cluster, run_one, tasks, results, STOP, Interrupted)
 
 
 def _recording(config: tuple[str, int, str, int, float]) -> Path:

@@ -263,7 +263,7 @@ class Launcher:
         it gets it again, then SIGKILL after STOP_TIMEOUT_S (its stacks logged first)."""
         running = [n for n in names if self.procs[n].poll() is None]
         for name in running:
-            os.killpg(self.procs[name].pid, signal.SIGTERM)
+            signal_group(self.procs[name].pid, signal.SIGTERM)
         for name in running:
             proc = self.procs[name]
             try:
@@ -271,7 +271,7 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 # Seen rarely: a SIGTERM that never reaches the service's handler.
                 self.log(f"{name} still running after SIGTERM: sending it again")
-                os.killpg(proc.pid, signal.SIGTERM)
+                signal_group(proc.pid, signal.SIGTERM)
             try:
                 proc.wait(STOP_TIMEOUT_S / 2)
             except subprocess.TimeoutExpired:
@@ -285,6 +285,16 @@ class Launcher:
         for name in names:
             with contextlib.suppress(ProcessLookupError):  # anything the service started
                 os.killpg(self.procs[name].pid, signal.SIGKILL)
+
+
+def signal_group(pid: int, sig: int) -> None:
+    """``sig`` to the process group a service leads, or to the service alone while it has not
+    made its group yet (stopped right after its start: a forked one makes it first thing)."""
+    try:
+        os.killpg(pid, sig)
+    except ProcessLookupError:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, sig)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -12,7 +12,7 @@ if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then
 fi
 [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --upgrade pip
-"$VENV/bin/python" -m pip install -q -e ".[dev]"
+"$VENV/bin/python" -m pip install -q -e ".[dev,cluster]"
 # The tests check our CDR with an independent decoder (Foxglove's TypeScript one) under node.
 if ! command -v npm >/dev/null; then
   SUDO=$([ "$(id -u)" = 0 ] && echo "" || echo sudo)
