@@ -30,6 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "bad files) and report what survived"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
+    "keys": ("wavegrasp.ops.keys", "this installation's logins and TLS certificates for "
+             "access control on the bus"),
 }
 
 

@@ -1,10 +1,15 @@
-"""Access control on the router (ops/zenoh/acl/): only the gate's login gets a decision through,
-only the arm's login an arm state, and every service keeps its own keys and liveliness."""
+"""Access control on the router (ops/zenoh/acl/router.json5, with this installation's logins
+and certificates from ``wavegrasp keys``): only the gate's login gets a decision through, only
+the arm's login an arm state, every service keeps its own keys and liveliness, and a TLS link
+needs a certificate of this installation's own."""
 
 from __future__ import annotations
 
+import json
 import queue
+import re
 import socket
+import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,6 +18,7 @@ import pytest
 import zenoh
 
 from wavegrasp.gate.main import DECISION_KEY
+from wavegrasp.ops.keys import make_keys
 from wavegrasp.ops.launcher import free_port
 from wavegrasp.perception.main import OBJECT_KEY
 from wavegrasp.planner.main import PLAN_KEY
@@ -39,12 +45,21 @@ FORGERIES = {
 
 
 @pytest.fixture(scope="module")
-def endpoint() -> Iterator[str]:
-    """A ``wavegrasp router`` with ops/zenoh/acl/router.json5, run from the repository root
-    (the file names its credentials relative to it)."""
-    port = free_port()
-    proc = spawn(wavegrasp_cmd("router", "--listen", f"tcp/127.0.0.1:{port}",
-                               "--config", str(ACL / "router.json5")), {}, cwd=ROOT)
+def keys(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """This installation's logins and certificates (``wavegrasp keys``)."""
+    out = tmp_path_factory.mktemp("keys")
+    make_keys(out, [])
+    return out
+
+
+@pytest.fixture(scope="module")
+def endpoints(keys: Path) -> Iterator[tuple[str, str]]:
+    """A ``wavegrasp router`` with the config ``wavegrasp keys`` made: its TCP endpoint on the
+    loopback and its TLS one (mutual)."""
+    port, tls_port = free_port(), free_port()
+    proc = spawn(wavegrasp_cmd("router", "--listen", f"tcp/127.0.0.1:{port},"
+                               f"tls/127.0.0.1:{tls_port}", "--config", str(keys / "router.json5")),
+                 {})
     deadline = time.monotonic() + 15
     while proc.poll() is None and time.monotonic() < deadline:
         with socket.socket() as s:
@@ -52,14 +67,19 @@ def endpoint() -> Iterator[str]:
                 break
         time.sleep(0.05)
     assert proc.poll() is None, "the router refused its access-control config"
-    yield f"tcp/127.0.0.1:{port}"
+    yield f"tcp/127.0.0.1:{port}", f"tls/127.0.0.1:{tls_port}"
     stop(proc)
 
 
-def settings(service: str, endpoint: str, **kw) -> Settings:
+@pytest.fixture(scope="module")
+def endpoint(endpoints: tuple[str, str]) -> str:
+    return endpoints[0]
+
+
+def settings(service: str, endpoint: str, keys: Path, **kw) -> Settings:
     """A service's settings with access control on: ZENOH_CONFIG names its login file."""
     return Settings.from_env(service, env={"ZENOH_CONNECT": endpoint,
-                                           "ZENOH_CONFIG": str(ACL / "{service}.json5")}, **kw)
+                                           "ZENOH_CONFIG": str(keys / "{service}.json5")}, **kw)
 
 
 class Watcher:
@@ -89,8 +109,8 @@ def delivered(sender: Bus, key: str, watcher: Watcher, timeout: float = 5.0) -> 
 
 
 def test_only_the_gate_decides_and_commands_and_only_the_arm_reports_its_state(
-        endpoint: str) -> None:
-    buses = {name: Bus(settings(name, endpoint)) for name in ["recorder", *OWN_KEYS]}
+        endpoint: str, keys: Path) -> None:
+    buses = {name: Bus(settings(name, endpoint, keys)) for name in ["recorder", *OWN_KEYS]}
     try:
         watcher = Watcher(buses["recorder"].session)  # another process's view, via the router
         for name, keys in OWN_KEYS.items():
@@ -109,8 +129,9 @@ def test_only_the_gate_decides_and_commands_and_only_the_arm_reports_its_state(
             bus.close()
 
 
-def test_services_keep_their_own_keys_and_liveliness(endpoint: str) -> None:
-    perception, planner = (Bus(settings(name, endpoint)) for name in ("perception", "planner"))
+def test_services_keep_their_own_keys_and_liveliness(endpoint: str, keys: Path) -> None:
+    perception, planner = (Bus(settings(name, endpoint, keys))
+                           for name in ("perception", "planner"))
     try:
         got: queue.SimpleQueue[ObjectObservation] = queue.SimpleQueue()
         planner.subscribe(OBJECT_KEY, lambda m, d: got.put(m), ObjectObservation)
@@ -132,16 +153,42 @@ def test_services_keep_their_own_keys_and_liveliness(endpoint: str) -> None:
         planner.close()
 
 
-def test_no_session_without_the_right_password(endpoint: str, tmp_path: Path) -> None:
-    open_session(settings("gate", endpoint)).close()  # the router is up and the login works
-    logins = {"gate": "guess", "intruder": "example-only-gate-password-replace-me"}
+def test_no_session_without_the_right_password(endpoint: str, keys: Path,
+                                               tmp_path: Path) -> None:
+    open_session(settings("gate", endpoint, keys)).close()  # the router is up, the login works
+    other = tmp_path / "other"  # another installation's: the same logins, other passwords
+    make_keys(other, [])
+    logins = {"gate": "guess", "intruder": "anything"}
     for user, password in logins.items():
         (tmp_path / f"{user}.json5").write_text(
             f'{{transport: {{auth: {{usrpwd: {{user: "{user}", password: "{password}"}}}}}}}}')
-    for conf in (str(tmp_path / "gate.json5"), str(tmp_path / "intruder.json5"), None):
-        s = Settings(service="gate", zenoh_connect=[endpoint], zenoh_config=conf,
+    for conf in (tmp_path / "gate.json5", tmp_path / "intruder.json5", other / "gate.json5",
+                 None):
+        s = Settings(service="gate", zenoh_connect=[endpoint], zenoh_config=conf and str(conf),
                      connect_timeout_s=0.3)
         with pytest.raises(ConnectionError, match=f"cannot open zenoh session on {endpoint}"):
+            open_session(s).close()
+
+
+def test_a_tls_link_needs_this_installations_certificate(endpoints: tuple[str, str],
+                                                         keys: Path, tmp_path: Path) -> None:
+    """Mutual TLS: the router shows a certificate of this installation's CA and asks each
+    client for one; the login is checked as well."""
+    _tcp, tls = endpoints
+    open_session(settings("sim", tls, keys)).close()  # the arm's certificate and login
+    login_only = tmp_path / "login-only.json5"  # the right login, no certificate
+    login = json.loads((keys / "sim.json5").read_text().split("\n", 1)[1])
+    del login["transport"]["link"]
+    login_only.write_text(json.dumps(login))
+    other = tmp_path / "other"
+    make_keys(other, [])
+    stranger = json.loads((other / "sim.json5").read_text().split("\n", 1)[1])
+    stranger["transport"]["auth"] = login["transport"]["auth"]  # the right login, their CA
+    (tmp_path / "stranger.json5").write_text(json.dumps(stranger))
+    for conf in (login_only, tmp_path / "stranger.json5"):
+        s = Settings(service="sim", zenoh_connect=[tls], zenoh_config=str(conf),
+                     connect_timeout_s=0.5)
+        with pytest.raises(ConnectionError, match=f"cannot open zenoh session on {tls}"):
             open_session(s).close()
 
 
@@ -166,11 +213,34 @@ def test_a_router_does_not_wait_for_scouting_unless_its_file_says_so(tmp_path: P
     assert zenoh_config(router).get_json("scouting/delay") == "300"
 
 
-def test_the_tls_example_keeps_the_rules_of_the_acl() -> None:
-    """ops/zenoh/router-tls.json5.example parses and differs from the ACL only in subjects
-    (its certificate paths are placeholders, so it is not opened)."""
-    example = zenoh.Config.from_json5((ACL.parent / "router-tls.json5.example").read_text())
-    acl = zenoh.Config.from_file(str(ACL / "router.json5"))
-    for key in ("access_control/rules", "access_control/policies", "transport/auth"):
-        assert example.get_json(key) == acl.get_json(key), key
-    assert '"enable_mtls":true' in example.get_json("transport/link/tls")
+def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
+                                                              tmp_path: Path) -> None:
+    """``wavegrasp keys`` keeps the rules of ops/zenoh/acl/router.json5, gives every login a
+    password of its own, readable by its owner only, and a second installation other ones;
+    the repository holds no password."""
+    made = zenoh.Config.from_file(str(keys / "router.json5"))
+    rules = zenoh.Config.from_file(str(ACL / "router.json5"))
+    for key in ("access_control/rules", "access_control/policies", "access_control/subjects"):
+        assert made.get_json(key) == rules.get_json(key), key
+    assert json.loads(made.get_json("transport/auth/usrpwd/dictionary_file")) == str(
+        keys / "credentials.txt")
+    assert json.loads(made.get_json("transport/link/tls/enable_mtls")) is True
+    lines = (keys / "credentials.txt").read_text().splitlines()
+    passwords = dict(line.split(":", 1) for line in lines)
+    assert set(passwords) == {"recorder", "perception", "predictor", "planner", "gate", "arm",
+                              "player", "launcher", "health-check"}
+    assert len(set(passwords.values())) == len(passwords)
+    assert all(len(p) >= 32 for p in passwords.values())
+    assert {oct(p.stat().st_mode & 0o777) for p in keys.iterdir()} == {"0o600"}
+    assert oct(keys.stat().st_mode & 0o777) == "0o700"
+    again = subprocess.run(wavegrasp_cmd("keys", "--out", str(keys)), capture_output=True,
+                           text=True)
+    assert again.returncode == 0 and "holds keys already: kept" in again.stderr
+    assert (keys / "credentials.txt").read_text().splitlines() == lines
+    make_keys(tmp_path, [])
+    assert not set(lines) & set((tmp_path / "credentials.txt").read_text().splitlines())
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
+                             text=True).stdout.split()
+    assert not [f for f in tracked if f.endswith("credentials.txt") or f.endswith(".pem")]
+    assert not [f for f in tracked if f.endswith(".json5")
+                and re.search(r'password"?\s*:\s*"', (ROOT / f).read_text())]

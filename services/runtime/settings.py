@@ -2,8 +2,8 @@
 
 Zenoh endpoints come from ``ZENOH_CONNECT`` / ``ZENOH_LISTEN`` (comma-separated, e.g.
 ``tcp/router:7447``) and a zenoh config file from ``ZENOH_CONFIG`` (e.g.
-``ops/zenoh/acl/{service}.json5``); every other field ``f`` of a settings model comes from
-``WAVEGRASP_F``.
+``keys/{service}.json5``, made by ``wavegrasp keys``); every other field ``f`` of a settings
+model comes from ``WAVEGRASP_F``.
 Command-line options given to a service override the environment.
 """
 
