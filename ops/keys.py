@@ -3,7 +3,7 @@
 Access control on the bus (``ops/zenoh/acl/router.json5``: who may publish what) needs a
 password per login and, on links that leave the computer (the tether), certificates for mutual
 TLS. None is in the repository: this makes them, once per installation, into ``--out``
-(default ``keys/``, which git ignores; readable by its owner only):
+(default ``keys/``, which git ignores; readable by its owner and its group only):
 
 - ``credentials.txt``: one ``login:password`` a line (random, 32 characters), the router's;
 - ``<process>.json5``: each process's zenoh config, its login (the sim logs in as ``arm``,
@@ -130,7 +130,7 @@ def make_keys(out: Path, hosts: list[str]) -> list[str]:
     """Write a new set into ``out``; returns the files written."""
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    out.chmod(0o700)
+    out.chmod(0o750)
     files: dict[str, bytes] = {}
     ca_key = new_key()
     ca = certificate("wavegrasp CA", ca_key, subject("wavegrasp CA"), ca_key, ca=True)
@@ -155,10 +155,10 @@ def make_keys(out: Path, hosts: list[str]) -> list[str]:
             files[f"{process}.json5"] = client_config(login, passwords[login], out).encode()
     for name, data in files.items():
         path = out / name
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-        path.chmod(0o600)
+        path.chmod(0o640)  # the group: compose's recorder runs as the run folder's owner
     return sorted(files)
 
 

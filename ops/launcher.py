@@ -360,6 +360,9 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         "WAVEGRASP_PLAYER_RESUME_FILE": str(out / "player-position.json"),
         "WAVEGRASP_SIM_RESUME_FILE": str(out / "sim-state.json"),
     }
+    # docker-compose.yml turns access control on (ZENOH_CONFIG, the keys service's logins);
+    # here, on the loopback, the bus stays open unless ZENOH_CONFIG names the logins.
+    env["WAVEGRASP_ZENOH_CONFIG"] = environ.get("ZENOH_CONFIG", "")
     if args.pace != "realtime":
         # Real-time priorities serve latency at the recording's rate. Faster, the path's
         # services would take both cores from the recorder and the sim that the run waits
@@ -384,6 +387,9 @@ def execute(run: Run) -> str:
     launcher, args = run.launcher, run.args
     run.started = time.time()
     launcher.log(f"recording {run.recording} -> {run.out} ({args.pace})")
+    if not run.env["WAVEGRASP_ZENOH_CONFIG"]:
+        launcher.log("the bus is open on the loopback (access control: `wavegrasp keys`, then "
+                     "ZENOH_CONFIG=\"$PWD/keys/{service}.json5\" wavegrasp up)")
     try:
         why = launcher.wait_end() if launcher.bring_up() else "crashed"
         if launcher.interrupted.is_set():

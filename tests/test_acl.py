@@ -216,7 +216,8 @@ def test_a_router_does_not_wait_for_scouting_unless_its_file_says_so(tmp_path: P
 def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
                                                               tmp_path: Path) -> None:
     """``wavegrasp keys`` keeps the rules of ops/zenoh/acl/router.json5, gives every login a
-    password of its own, readable by its owner only, and a second installation other ones;
+    password of its own, readable by its owner and group only, and a second installation other
+    ones;
     the repository holds no password."""
     made = zenoh.Config.from_file(str(keys / "router.json5"))
     rules = zenoh.Config.from_file(str(ACL / "router.json5"))
@@ -231,8 +232,8 @@ def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
                               "player", "launcher", "health-check"}
     assert len(set(passwords.values())) == len(passwords)
     assert all(len(p) >= 32 for p in passwords.values())
-    assert {oct(p.stat().st_mode & 0o777) for p in keys.iterdir()} == {"0o600"}
-    assert oct(keys.stat().st_mode & 0o777) == "0o700"
+    assert {oct(p.stat().st_mode & 0o777) for p in keys.iterdir()} == {"0o640"}
+    assert oct(keys.stat().st_mode & 0o777) == "0o750"
     again = subprocess.run(wavegrasp_cmd("keys", "--out", str(keys)), capture_output=True,
                            text=True)
     assert again.returncode == 0 and "holds keys already: kept" in again.stderr
