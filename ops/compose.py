@@ -41,10 +41,6 @@ class ComposeService:
 RESTART_POLICY = re.compile(r"no|always|unless-stopped|on-failure(:[0-9]+)?")
 
 
-#: The label of a service only compose runs (the launcher leaves it out).
-COMPOSE_ONLY = "wavegrasp.compose-only"
-
-
 def interpolate(text: str, variables: Mapping[str, str]) -> str:
     """Compose variable substitution on one string."""
 
@@ -77,8 +73,7 @@ def load_compose(path: Path, variables: Mapping[str, str],
     """Parse ``path``; raises ValueError naming the file and the service that is malformed.
 
     As compose does, a service with ``profiles`` is left out unless one of them is in
-    ``profiles``; one labelled ``wavegrasp.compose-only: "true"`` (the keys service) always,
-    and what depends on it no longer does.
+    ``profiles``.
     """
     try:
         doc = yaml.safe_load(path.read_text())
@@ -91,8 +86,6 @@ def load_compose(path: Path, variables: Mapping[str, str],
         where = f"{path}: service {name}"
         wanted = spec.get("profiles") or []
         if wanted and not set(wanted) & profiles:
-            continue
-        if _as_dict(spec.get("labels"), where).get(COMPOSE_ONLY) == "true":
             continue
         command = spec.get("command")
         if isinstance(command, str):
@@ -116,10 +109,7 @@ def load_compose(path: Path, variables: Mapping[str, str],
             restart=restart,
             profiles=list(wanted),
         )
-    only_compose = {n for n, spec in doc["services"].items()
-                    if _as_dict(spec.get("labels"), n).get(COMPOSE_ONLY) == "true"}
     for svc in services.values():
-        svc.depends_on = {d: c for d, c in svc.depends_on.items() if d not in only_compose}
         for dep in svc.depends_on:
             if dep not in services:
                 raise ValueError(f"{path}: service {svc.name} depends on unknown service {dep}")

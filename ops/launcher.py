@@ -360,9 +360,11 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         "WAVEGRASP_PLAYER_RESUME_FILE": str(out / "player-position.json"),
         "WAVEGRASP_SIM_RESUME_FILE": str(out / "sim-state.json"),
     }
-    # docker-compose.yml turns access control on (ZENOH_CONFIG, the keys service's logins);
-    # here, on the loopback, the bus stays open unless ZENOH_CONFIG names the logins.
+    # docker-compose.yml turns access control on (ZENOH_CONFIG, the logins its router makes
+    # in WAVEGRASP_KEYS); here, on the loopback, the bus stays open unless ZENOH_CONFIG names
+    # the logins (and the router makes none unless WAVEGRASP_KEYS names a folder).
     env["WAVEGRASP_ZENOH_CONFIG"] = environ.get("ZENOH_CONFIG", "")
+    env.setdefault("WAVEGRASP_KEYS", "")
     if args.pace != "realtime":
         # Real-time priorities serve latency at the recording's rate. Faster, the path's
         # services would take both cores from the recorder and the sim that the run waits

@@ -245,3 +245,22 @@ def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
     assert not [f for f in tracked if f.endswith("credentials.txt") or f.endswith(".pem")]
     assert not [f for f in tracked if f.endswith(".json5")
                 and re.search(r'password"?\s*:\s*"', (ROOT / f).read_text())]
+
+
+def test_a_router_with_keys_makes_them_first_and_runs_on_them(tmp_path: Path) -> None:
+    """``wavegrasp router --keys DIR`` (compose's router: WAVEGRASP_KEYS) makes this
+    installation's logins where there are none, then requires them."""
+    keys, port = tmp_path / "keys", free_port()
+    proc = spawn(wavegrasp_cmd("router", "--listen", f"tcp/127.0.0.1:{port}", "--keys",
+                               str(keys), "--config", str(keys / "router.json5")), {})
+    try:
+        endpoint = f"tcp/127.0.0.1:{port}"
+        assert wait_until(lambda: (keys / "gate.json5").exists(), timeout=15, period=0.1)
+        s = settings("gate", endpoint, keys, connect_timeout_s=15)
+        open_session(s).close()
+        assert len((keys / "credentials.txt").read_text().splitlines()) == 9
+        with pytest.raises(ConnectionError, match="cannot open zenoh session"):
+            open_session(Settings(service="gate", zenoh_connect=[endpoint],
+                                  connect_timeout_s=0.3)).close()
+    finally:
+        stop(proc)

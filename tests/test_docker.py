@@ -52,9 +52,13 @@ def test_compose_up_in_containers_grasps_and_records_every_frame(compose_run) ->
     log = result.stdout[-4000:] + result.stderr[-4000:]
     assert result.returncode == 0, log
 
-    # Every container ran and exited 0 (the script lists each one).
+    # Every container ran and exited 0 (the script lists each one). The router made this
+    # installation's logins first, and every service logged in with its own (the router
+    # refuses a session without one: access control is on).
     exits = [line.split()[-1] for line in result.stderr.splitlines() if " exited " in line]
     assert len(exits) == 8 and set(exits) == {"0"}, log
+    assert "made this installation's logins and certificates: 33 files in /keys" in (
+        result.stdout + result.stderr), log
 
     # The recorder wrote the summary: the whole recording played, and the grasp succeeded.
     summary = json.loads((out / "summary.json").read_text())
