@@ -21,6 +21,7 @@ from wavegrasp.schemas.messages import (
     GraspOutcome,
     GraspPlan,
     Header,
+    Heartbeat,
     Hop,
     JointSample,
     MotionPrediction,
@@ -48,12 +49,14 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         ArmState,
         Clock,
         FrameAck,
+        Heartbeat,
         PlayerStatus,
         ServiceStats,
     )
 }
 
 CLOCK_KEY = "wavegrasp/clock"
+HEARTBEAT_KEY = "wavegrasp/gate/heartbeat"
 
 KEY_TYPES: dict[str, type[BaseModel]] = {
     CLOCK_KEY: Clock,
@@ -64,6 +67,7 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/planner/standby": ArmStandby,
     "wavegrasp/gate/decision": GateDecision,
     "wavegrasp/gate/abort": GateAbort,
+    HEARTBEAT_KEY: Heartbeat,
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
     "wavegrasp/player/status": PlayerStatus,
@@ -110,7 +114,8 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 __all__ = [
     "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "FrameAck", "GateAbort", "GateDecision",
-    "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Hop", "JointSample", "KEY_TYPES",
+    "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Heartbeat", "HEARTBEAT_KEY", "Hop",
+    "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
     "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
     "health_key", "model_for_key", "stats_key",

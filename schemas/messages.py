@@ -314,6 +314,15 @@ class FrameAck(Message):
     frame_seq: Count
 
 
+class Heartbeat(Message):
+    """``wavegrasp/gate/heartbeat``: the gate is there and its link to the arm holds. Sent
+    every ``period_s`` (wall) while the recording plays in real time; the arm's side stops
+    and holds when it misses them (the arm's watchdog)."""
+
+    header: Header
+    period_s: float = Field(gt=0, description="wall seconds between two heartbeats")
+
+
 class PlayerStatus(Message):
     """``wavegrasp/player/status``: what the player is replaying and how far it got."""
 

@@ -31,6 +31,7 @@ from wavegrasp.schemas import (
     GraspOutcome,
     GraspPlan,
     Header,
+    Heartbeat,
     Hop,
     JointSample,
     MotionPrediction,
@@ -408,6 +409,7 @@ def example_plan(plan_id: str = "example", t0: int = 10**18, joints: int = 6) ->
 EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
     Clock: lambda: Clock(header=header(10**18), rate=1.0, published={"trisect/points": 3}),
     FrameAck: lambda: FrameAck(header=header(10**18), service="perception", frame_seq=3),
+    Heartbeat: lambda: Heartbeat(header=header(10**18), period_s=0.1),
     ObjectObservation: lambda: ObjectObservation(
         header=header(10**18), centroid=Vec3(x=0.1, y=-0.2, z=0.5), points_used=400,
         quality=0.9, sigma_m=0.001, shape="sphere", axis=Vec3(x=0, y=0, z=1), radius_m=0.06,

@@ -20,10 +20,12 @@ from wavegrasp.recording_io.reader import open_recording
 from wavegrasp.recording_io.ros_msgs import decode_points, decode_pose
 from wavegrasp.runtime.service import Service
 from wavegrasp.schemas import (
+    HEARTBEAT_KEY,
     KEY_TYPES,
     ROS_KEYS,
     Clock,
     FrameAck,
+    Heartbeat,
     MotionPrediction,
     PredictionSample,
     model_for_key,
@@ -267,6 +269,8 @@ class Scenario:
         """A valid message on ``key`` that does not disturb the checks after the fuzz."""
         if key == "wavegrasp/clock":
             return message_case("valid", Clock(header=header(self.t_ns), rate=0.0))
+        if key == HEARTBEAT_KEY:  # the gate is there: nothing changes
+            return message_case("valid", Heartbeat(header=header(self.t_ns), period_s=0.1))
         if key.endswith("/ack"):
             self.acks += 1
             return message_case("valid", FrameAck(header=header(self.t_ns),

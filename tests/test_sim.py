@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from wavegrasp.arm import ArmModel
+from wavegrasp.arm.motion import JointPath
 from wavegrasp.gate.command import Commander
 from wavegrasp.planner.approach import PredictedPath
 from wavegrasp.planner.collision import Body
 from wavegrasp.planner.plan import Plan, PlannerConfig, plan_grasp
+from wavegrasp.schemas import Header
 from wavegrasp.sim.executor import Attempt, Executor, Result
 from wavegrasp.sim.world import ObjectShape, SimWorld
 from wavegrasp.wavetank.record import arm_mount, pose_matrix
@@ -538,3 +540,90 @@ def test_the_arm_is_driven_only_by_joint_trajectories_and_reports_joint_states(
     np.testing.assert_allclose(q[-1], arm.q_home, atol=0.01)
     assert fingers[-1].sum() == pytest.approx(arm.jaw_max_opening_m, abs=0.005)
     assert sim.counters["paths followed"] == 2
+
+
+def test_the_arm_stops_and_holds_without_the_gates_heartbeat_and_takes_no_stale_path(
+        router, arm, T_world_base) -> None:
+    """The arm's watchdog (the link to the topside drops): while the gate's heartbeats come
+    the arm follows its trajectory; once they stop for ``watchdog_s`` it holds where it is
+    and refuses new paths; after the next heartbeat it takes fresh ones again, never one
+    that started longer ago than ``freshness_s``."""
+    import time
+
+    from wavegrasp.recording_io.ros_msgs import JOINT_TRAJECTORY, encode_joint_trajectory
+    from wavegrasp.schemas import HEARTBEAT_KEY, Heartbeat
+    from wavegrasp.sim.main import SimService, SimSettings
+
+    from conftest import wait_until
+
+    plan, _path = plan_for(arm, T_world_base)
+    attempt = Attempt("p", plan.times, plan.q, plan.qd, plan.t_grasp, plan.grasp_T_world[:3, 3],
+                      plan.t_final, plan.jaw_preshape_m, plan.t_close, standby=arm.q_home)
+    sim = SimService(SimSettings.from_env("sim", env=router.env, watchdog_s=0.3))
+    gate = router.bus("gate")
+    beats = 0
+
+    def beat() -> None:
+        nonlocal beats
+        gate.publish(HEARTBEAT_KEY, Heartbeat(header=Header(seq=beats), period_s=0.1))
+        beats += 1
+
+    def send(path) -> None:
+        key = sim.cfg.arm_trajectory_key if path.names == list(arm.joint_names) else \
+            sim.cfg.jaw_trajectory_key
+        gate.publish_cdr(key, encode_joint_trajectory(path.names, path.times, path.q, path.qd),
+                         JOINT_TRAJECTORY)
+
+    def advance(until: float) -> None:
+        t = sim.world.time_s
+        while t < until - 1e-9:
+            t += 0.01
+            sim.advance(t, swing(t), UPRIGHT)
+
+    try:
+        sim.world = SimWorld(arm, T_world_base, CAN)
+        sim.world.place_object(swing(NOW), UPRIGHT)
+        assert sim.world.add_tether()
+        sim.world.step_to(NOW)
+        sim.executor = Executor(sim.world)
+        time.sleep(0.5)  # the subscriptions known to the router
+        beat()
+        assert wait_until(lambda: sim.drain() >= 0 and sim.watchdog.last is not None)
+        arm_path, jaw_path = Commander(arm).grasp(attempt)
+        send(arm_path)
+        send(jaw_path)
+        assert wait_until(lambda: sim.drain() >= 0 and len(sim._paths) == 2)
+        sim.follow_paths()
+        advance(plan.times[0] + 0.5)  # under way
+        moving_q = sim.world.arm_q()[0]
+        sim.on_tick()
+        assert sim.counters["watchdog: stopped, no heartbeat"] == 0  # the beat is recent
+        time.sleep(0.4)  # no heartbeat for longer than watchdog_s
+        sim.on_tick()
+        assert sim.counters["watchdog: stopped, no heartbeat"] == 1
+        stopped_at, held = sim.world.time_s, sim.executor.arm_path.at(sim.world.time_s)[0]
+        advance(stopped_at + 1.0)  # the arm holds where it was commanded to be
+        np.testing.assert_allclose(sim.world.arm_q()[0], held, atol=2e-3)
+        assert np.linalg.norm(held - moving_q) > 0.01  # it had moved on its path meanwhile
+        assert sim.executor.arm_path.end_s == stopped_at
+        later = Commander(arm).grasp(attempt, now_s=sim.world.time_s)[0]
+        send(later)  # the link is down: nothing new is taken
+        assert wait_until(lambda: sim.drain() >= 0
+                          and sim.counters["paths refused: no heartbeat"] == 1)
+        beat()  # the link is back
+        assert wait_until(lambda: sim.drain() >= 0 and not sim.watchdog.tripped)
+        send(later)  # approved before the drop, delivered now: too old to carry out
+        assert wait_until(lambda: sim.drain() >= 0 and sim.counters["paths refused: stale"] == 1)
+        now = sim.world.time_s
+        fresh = JointPath(list(arm.joint_names), [now + 0.1, now + 2.0], [held, arm.q_home],
+                          np.zeros((2, len(held))))
+        send(fresh)
+        assert wait_until(lambda: sim.drain() >= 0 and len(sim._paths) == 1)
+        sim.follow_paths()
+        advance(now + 2.5)
+        np.testing.assert_allclose(sim.world.arm_q()[0], arm.q_home, atol=0.01)
+        assert sim.counters["paths followed"] == 3
+    finally:
+        sim.world.close()
+        sim.bus.close()
+        gate.close()

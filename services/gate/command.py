@@ -30,6 +30,8 @@ class CommandConfig(BaseModel):
     closed_m: float = Field(0.0, ge=0, description="the jaw's commanded opening when closing")
     sample_s: float = Field(0.02, gt=0, description="the time between samples of a return "
                             "or a retreat")
+    heartbeat_s: float = Field(0.1, gt=0, description="wall seconds between the gate's "
+                               "heartbeats, which the arm's watchdog waits for")
 
 
 class Commander:

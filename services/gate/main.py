@@ -11,7 +11,9 @@ It also commands the arm (:mod:`wavegrasp.gate.command`), in the types ros2_cont
 controllers take: every approved plan, update and abort, and the planner's standby moves of
 the idle arm (``wavegrasp/planner/standby``), as ``trajectory_msgs/msg/JointTrajectory`` for
 the arm's joint trajectory controller and for the jaw's (:class:`ArmTopics`), each sent right
-after the decision it carries out (before the abort).
+after the decision it carries out (before the abort). While time runs as the wall's it sends a
+heartbeat (``wavegrasp/gate/heartbeat``) every ``heartbeat_s``: the arm stops and holds when
+they stop coming (the sim's ``watchdog_s``).
 Thresholds come from ``WAVEGRASP_<FIELD>`` for each field of :class:`GateConfig` and
 :class:`CommandConfig`.
 """
@@ -33,11 +35,13 @@ from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.runtime.trace import derived_header, new_header
 from wavegrasp.schemas import (
+    HEARTBEAT_KEY,
     ArmStandby,
     GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
+    Heartbeat,
     MotionPrediction,
     ObjectObservation,
 )
@@ -76,6 +80,7 @@ class GateService(Service):
         self.gate = Gate(settings.gate_config())
         self.commander = Commander(arm, settings.command_config())
         self._standby: JointPath | None = None  # asked for this frame
+        self._beat_at, self._beats = float("-inf"), 0  # the last heartbeat (monotonic s)
         self.bus.watch_alive()
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction, MotionPrediction)
@@ -134,6 +139,20 @@ class GateService(Service):
     def on_tick(self) -> None:
         if self.settings.clock == "wall":  # a live vehicle's inputs may go silent between
             self.watch()                   # frames; a replay's are judged at each frame
+        self.beat()
+
+    def beat(self) -> None:
+        """The heartbeat the arm's watchdog waits for, every ``heartbeat_s`` of wall time
+        while time runs as the wall's (live, or a replay in real time); none in a lockstep or
+        fast replay, whose frames wait for the pipeline however long it takes."""
+        now = time.monotonic()
+        if self.clock.rate <= 0 or now - self._beat_at < self.cfg.heartbeat_s:
+            return
+        self._beat_at = now
+        self.bus.publish(HEARTBEAT_KEY, Heartbeat(
+            header=new_header(self.name, self._beats, self.clock.now_ns()),
+            period_s=self.cfg.heartbeat_s))
+        self._beats += 1
 
     def watch(self) -> None:
         found = self.gate.watch(self.clock.now_ns())

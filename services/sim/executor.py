@@ -115,6 +115,20 @@ class Executor:
             raise ValueError(f"joint names {path.names} are neither the arm's "
                              f"{list(arm.joint_names)} nor the jaw's {list(arm.jaw_joints)}")
 
+    def hold(self) -> None:
+        """Stop where the arm and the jaw are commanded to be now and hold there (the
+        watchdog's stop: the link to the gate is gone)."""
+        now = self.world.time_s
+        for path in (self.arm_path, self.jaw_path):
+            if path is not None:
+                q, _qd = path.at(now)
+                still = JointPath(path.names, [now], [q], [np.zeros(len(q))])
+                if path is self.arm_path:
+                    self.arm_path, self._at_end = still, False
+                else:
+                    self.jaw_path = still
+        self._move_jaw()
+
     def _move_jaw(self) -> None:
         """Head the fingers where the jaw's path heads now (they move at their own speed)."""
         if self.jaw_path is None:

@@ -48,12 +48,14 @@ from wavegrasp.runtime.settings import ArmTopics, Settings
 from wavegrasp.runtime.state import StateFile
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import (
+    HEARTBEAT_KEY,
     ArmState,
     FrameAck,
     GateAbort,
     GateDecision,
     GraspOutcome,
     GraspPlan,
+    Heartbeat,
     MotionPrediction,
     ObjectMesh,
     ObjectObservation,
@@ -61,6 +63,7 @@ from wavegrasp.schemas import (
 )
 from wavegrasp.schemas.mesh_codec import decode_mesh
 from wavegrasp.sim.executor import Attempt, Executor, Result
+from wavegrasp.sim.watchdog import Watchdog
 from wavegrasp.sim.world import STEP_S, ObjectShape, SimWorld
 from wavegrasp.wavetank.scenario import ObjectModel
 
@@ -92,6 +95,12 @@ class SimSettings(Settings, ArmTopics):
                                     "(compose labels the sim as ending the run)")
     resume_file: Path | None = Field(None, description="where the sim notes its trial and "
                                      "attempt; restarted after a crash, it goes on from there")
+    watchdog_s: float = Field(0.5, gt=0, description="wall seconds without the gate's "
+                              "heartbeat, while time runs as the wall's, before the arm stops "
+                              "and holds (and refuses new paths until the next heartbeat)")
+    freshness_s: float = Field(1.0, gt=0, description="a path that starts longer ago than "
+                               "this (recording seconds) is refused: an approval delayed on "
+                               "the way (a link that came back) is not carried out")
 
 
 class SimService(Service):
@@ -124,6 +133,7 @@ class SimService(Service):
         self._go_waiting: tuple[str, float] | None = None  # approved: (plan id, monotonic s)
         self._plans_flow = False  # a warm prediction or a decision has come: trials begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
+        self.watchdog = Watchdog(settings.watchdog_s)
         self.state = StateFile(settings.resume_file)
         self._saved: dict | None = None
         self.resume(self.state.load())
@@ -139,6 +149,7 @@ class SimService(Service):
         self.bus.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
         self.bus.subscribe("wavegrasp/gate/abort", self.on_abort, GateAbort)
         self.bus.subscribe("wavegrasp/player/status", self.on_player_status, PlayerStatus)
+        self.bus.subscribe(HEARTBEAT_KEY, self.on_heartbeat, Heartbeat)
 
     def resume(self, state: dict | None) -> None:
         """Go on with the trials of a sim that crashed; an attempt it was executing failed."""
@@ -205,6 +216,21 @@ class SimService(Service):
                 time.monotonic() - self._go_waiting[1] > PLAN_WAIT_S):
             self.drop_waiting_go()
             self.release_frames()
+        # Only while time runs as the wall's: a lockstep or fast replay beats no time.
+        if self.clock.rate > 0 and self.watchdog.silent(time.monotonic()):
+            self.drain()  # heartbeats queued behind a long frame are no silence
+            if not self.watchdog.check(time.monotonic()):
+                return
+            self.counters["watchdog: stopped, no heartbeat"] += 1
+            log.warning("no heartbeat from the gate for %.1f s: the arm stops and holds",
+                        self.watchdog.timeout_s)
+            self._paths.clear()
+            if self.executor is not None:
+                self.executor.hold()
+
+    def on_heartbeat(self, _msg: Heartbeat, _d: Delivery) -> None:
+        if self.watchdog.beat(time.monotonic()):
+            log.info("the gate's heartbeat is back: the arm takes paths again")
 
     def on_player_status(self, msg: PlayerStatus, _d: Delivery) -> None:
         """The world's own object, from a generated recording's scenario (the sim stands in
@@ -276,6 +302,14 @@ class SimService(Service):
         whichever moment of the frame it comes in, the arm moves alike). Its joints may come
         in any order; they must be all of the arm's, or all of the jaw's."""
         names, times, q, qd = decode_joint_trajectory(d.payload)
+        if self.watchdog.tripped:
+            self.counters["paths refused: no heartbeat"] += 1
+            return
+        if self.world is not None and times[0] < self.world.time_s - self.cfg.freshness_s:
+            self.counters["paths refused: stale"] += 1
+            log.warning("a path starting %.1f s ago refused (freshness %.1f s)",
+                        self.world.time_s - times[0], self.cfg.freshness_s)
+            return
         for own in (list(self.arm.joint_names), list(self.arm.jaw_joints)):
             if sorted(names) == sorted(own):
                 order = [names.index(n) for n in own]
