@@ -23,13 +23,14 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
 from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
+from wavegrasp.ops.tether import VEHICLE, Tether
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.summary import RunSummary
@@ -209,8 +210,9 @@ class Launcher:
         for name in self.order:
             healthy = [d for d, c in self.services[name].depends_on.items()
                        if c == "service_healthy"]
-            if self.bus is None and self.started:
-                self.connect()
+            if self.bus is None and self.started and (
+                    "router" in self.started or "router" not in self.services):
+                self.connect()  # to the router (the topside's, with a tether)
             if healthy and not self.wait_healthy(healthy):
                 return False
             if self.interrupted.is_set():
@@ -312,6 +314,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "fed live; it stays up after the run until Ctrl-C")
     parser.add_argument("--viewer-port", type=int, default=9090,
                         help="HTTP port of the web viewer (default 9090)")
+    parser.add_argument("--tether", type=float, metavar="MBIT",
+                        help="the vehicle's services (player, sim) and a router of their own "
+                        "in a network namespace, joined to the topside's by a link of MBIT "
+                        "Mbit/s each way (needs root; ops/tether.py)")
     parser.add_argument("--no-fork", dest="fork", action="store_false",
                         help="start each service as a command of its own (as compose does), "
                         "not forked from a process that has loaded their libraries once")
@@ -329,6 +335,7 @@ class Run:
     recording: Path
     started: float = 0.0
     crashed: list[str] = field(default_factory=list)
+    tether: Tether | None = None
 
 
 def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
@@ -378,16 +385,49 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
                 "WAVEGRASP_VIEWER_WEB_PORT": str(args.viewer_port),
                 "WAVEGRASP_VIEWER_URL": f"rerun+http://127.0.0.1:{grpc_port}/proxy"}
     env["ZENOH_CONNECT"] = f"tcp/127.0.0.1:{env['WAVEGRASP_ROUTER_PORT']}"
+    tether = None
+    if args.tether is not None:
+        tether = Tether(args.tether)
+        tether.check()
+        # No shared-memory pool: a frame in it would reach the topside past the tether.
+        env["WAVEGRASP_SHARED_MEMORY_MB"] = "0"
     services = load_compose(compose_path, env,
                             frozenset({"viewer"}) if args.viewer else frozenset())
+    if tether is not None:
+        across_tether(services, tether, free_port())
     out.mkdir(parents=True, exist_ok=True)
-    return Run(args, Launcher(services, env, args.fork, log, interrupted), env, out, recording)
+    return Run(args, Launcher(services, env, args.fork, log, interrupted), env, out, recording,
+               tether=tether)
+
+
+def across_tether(services: dict[str, ComposeService], tether: Tether, port: int) -> None:
+    """Put the vehicle's services in the tether's namespace with a router of their own on
+    ``port`` there, which the topside router reaches across the tether."""
+    router = services["router"]
+    vehicle_router = replace(router, name="vehicle-router", environment={
+        **router.environment, "WAVEGRASP_NETNS": tether.name,
+        "ZENOH_LISTEN": f"tcp/127.0.0.1:{port},tcp/{tether.vehicle_ip}:{port}"})
+    router.environment["WAVEGRASP_ROUTER_CONNECT"] = f"tcp/{tether.vehicle_ip}:{port}"
+    router.depends_on = {**router.depends_on, "vehicle-router": "service_started"}
+    services["vehicle-router"] = vehicle_router
+    for name in VEHICLE:
+        if name in services:
+            services[name].environment.update({
+                "WAVEGRASP_NETNS": tether.name, "ZENOH_CONNECT": f"tcp/127.0.0.1:{port}"})
 
 
 def execute(run: Run) -> str:
     """Bring the services up, wait for the run's end and stop them; returns why it ended."""
     launcher, args = run.launcher, run.args
     run.started = time.time()
+    if run.tether is not None:
+        try:
+            run.tether.__enter__()
+        except (OSError, ValueError) as exc:
+            launcher.log(f"cannot make the tether: {exc}")
+            return "crashed"
+        launcher.log(f"tether: {run.tether.mbit:g} Mbit/s each way, the vehicle's services "
+                     f"({', '.join(VEHICLE)}) in network namespace {run.tether.name}")
     launcher.log(f"recording {run.recording} -> {run.out} ({args.pace})")
     if not run.env["WAVEGRASP_ZENOH_CONFIG"]:
         launcher.log("the bus is open on the loopback (access control: `wavegrasp keys`, then "
@@ -405,6 +445,8 @@ def execute(run: Run) -> str:
         run.crashed = launcher.crashed()
         launcher.stop_all()
         run.crashed += launcher.killed
+        if run.tether is not None:
+            run.tether.__exit__()
     return why
 
 
@@ -420,6 +462,9 @@ def summarize(run: Run, why: str) -> dict:
         "restarts": {n: [asdict(r) for r in rs] for n, rs in launcher.restarts.items() if rs},
         "files": sorted(p.name for p in run.out.glob("run*.mcap")),
     }
+    if run.tether is not None:
+        summary["tether"] = run.tether.traffic()
+        launcher.log(f"tether: {summary['tether']}")
     (run.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for name, per_key in summary["bad_messages"].items():
         reasons = collected.stats[name].get("last_bad_reason", {})

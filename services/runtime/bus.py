@@ -143,6 +143,9 @@ def zenoh_config(settings: Settings, shared_memory: bool | None = None) -> zenoh
     conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
     if settings.zenoh_mode != "router":
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
+    elif settings.router_connect:  # a router's to another: keep trying while it is away
+        conf.insert_json5("connect/endpoints", json.dumps(settings.router_connect))
+        conf.insert_json5("connect/exit_on_failure", json.dumps({"router": False}))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if shared_memory is None:

@@ -22,6 +22,7 @@ any thread starts: threads inherit them.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import resource
 import threading
@@ -30,6 +31,8 @@ from pathlib import Path
 
 REALTIME_OFF = {"off", "false", "no", "0"}
 REALTIME_ON = {"on", "true", "yes", "1", ""}
+#: setns(2)'s flag for a network namespace.
+CLONE_NEWNET = 0x40000000
 
 
 def parse_cpus(text: str) -> set[int]:
@@ -68,10 +71,11 @@ def parse_rt_priority(text: str, realtime: str = "on") -> int | None:
 
 
 def place_process(env: Mapping[str, str]) -> list[str]:
-    """Apply ``WAVEGRASP_NICE`` (added to the current nice value), ``WAVEGRASP_RT_PRIORITY``
-    (unless ``WAVEGRASP_REALTIME`` is off) and ``WAVEGRASP_CPUS`` from ``env`` to this
-    process. Returns warnings for what this machine does not allow (the process then runs as
-    it would have); raises ValueError naming a malformed value."""
+    """Apply ``WAVEGRASP_NETNS`` (the network namespace), ``WAVEGRASP_NICE`` (added to the
+    current nice value), ``WAVEGRASP_RT_PRIORITY`` (unless ``WAVEGRASP_REALTIME`` is off) and
+    ``WAVEGRASP_CPUS`` from ``env`` to this process. Returns warnings for what this machine
+    does not allow (the process then runs as it would have); raises ValueError naming a
+    malformed value."""
     text = env.get("WAVEGRASP_NICE", "")
     try:
         increment = int(text or 0)
@@ -83,11 +87,30 @@ def place_process(env: Mapping[str, str]) -> list[str]:
         raise ValueError(f"WAVEGRASP_CPUS: {exc}") from None
     priority = parse_rt_priority(env.get("WAVEGRASP_RT_PRIORITY", ""),
                                  env.get("WAVEGRASP_REALTIME", "on"))
+    if env.get("WAVEGRASP_NETNS"):
+        enter_netns(env["WAVEGRASP_NETNS"])
     if increment:
         os.nice(increment)
     warnings = [realtime(priority)] if priority is not None else []
     warnings.append(pin(wanted, f"WAVEGRASP_CPUS={env.get('WAVEGRASP_CPUS', '')}"))
     return [w for w in warnings if w]
+
+
+def enter_netns(name: str) -> None:
+    """Move this process into the network namespace ``name`` (``ip netns``'s,
+    ``/run/netns/NAME``), before any thread starts: ``wavegrasp up --tether`` runs the
+    vehicle's services there. Raises ValueError naming the namespace if it cannot."""
+    try:
+        fd = os.open(f"/run/netns/{name}", os.O_RDONLY)
+    except OSError as exc:
+        raise ValueError(f"WAVEGRASP_NETNS={name}: {exc.strerror}") from None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.setns(fd, CLONE_NEWNET) != 0:
+            raise ValueError(f"WAVEGRASP_NETNS={name}: setns: "
+                             f"{os.strerror(ctypes.get_errno())}")
+    finally:
+        os.close(fd)
 
 
 def realtime(priority: int) -> str | None:

@@ -35,6 +35,9 @@ class Settings(BaseModel):
     service: str
     zenoh_connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER])
     zenoh_listen: list[str] = Field(default_factory=list)
+    router_connect: list[str] = Field(
+        default_factory=list, description="a router's links to other routers (the vehicle's, "
+        "across the tether); a client's are zenoh_connect")
     zenoh_mode: Literal["client", "peer", "router"] = "client"
     zenoh_config: str | None = Field(
         None, description="zenoh JSON5 file (credentials, access control, TLS) applied under "
