@@ -466,6 +466,19 @@ def test_the_world_is_the_recordings_own_object_not_perceptions_view(arm) -> Non
         bus.close()
 
 
+def give_scene(sim, arm: ArmModel, T_world_base: np.ndarray) -> None:
+    """The sim's world as the recording would build it: the can on its swing and its tether,
+    at NOW; then the sim's subscriptions are known to the router."""
+    import time
+
+    sim.world = SimWorld(arm, T_world_base, CAN)
+    sim.world.place_object(swing(NOW), UPRIGHT)
+    assert sim.world.add_tether()
+    sim.world.step_to(NOW)
+    sim.executor = Executor(sim.world)
+    time.sleep(0.5)
+
+
 def test_the_arm_is_driven_only_by_joint_trajectories_and_reports_joint_states(
         router, arm, T_world_base) -> None:
     """The arm's whole interface is a ros2_control arm's: the commander's paths go in over
@@ -474,7 +487,6 @@ def test_the_arm_is_driven_only_by_joint_trajectories_and_reports_joint_states(
     shows: both fingers stopped on the can, the tool at it while held, then the jaw open and
     the arm back at its standby. (The world, the can on its swing, is fed as the recording
     would; no plan, approval or any other message of ours reaches the sim.)"""
-    import time
 
     from wavegrasp.recording_io.ros_msgs import (
         JOINT_TRAJECTORY,
@@ -494,12 +506,7 @@ def test_the_arm_is_driven_only_by_joint_trajectories_and_reports_joint_states(
     commander.subscribe(sim.cfg.joint_states_key,
                         lambda d: states.append(decode_joint_state(d.payload)))
     try:
-        sim.world = SimWorld(arm, T_world_base, CAN)
-        sim.world.place_object(swing(NOW), UPRIGHT)
-        assert sim.world.add_tether()
-        sim.world.step_to(NOW)
-        sim.executor = Executor(sim.world)
-        time.sleep(0.5)  # both subscriptions known to the router
+        give_scene(sim, arm, T_world_base)
         arm_path, jaw_path = Commander(arm).grasp(attempt)
         for key, path in ((sim.cfg.arm_trajectory_key, arm_path),
                           (sim.cfg.jaw_trajectory_key, jaw_path)):
@@ -581,12 +588,7 @@ def test_the_arm_stops_and_holds_without_the_gates_heartbeat_and_takes_no_stale_
             sim.advance(t, swing(t), UPRIGHT)
 
     try:
-        sim.world = SimWorld(arm, T_world_base, CAN)
-        sim.world.place_object(swing(NOW), UPRIGHT)
-        assert sim.world.add_tether()
-        sim.world.step_to(NOW)
-        sim.executor = Executor(sim.world)
-        time.sleep(0.5)  # the subscriptions known to the router
+        give_scene(sim, arm, T_world_base)
         beat()
         assert wait_until(lambda: sim.drain() >= 0 and sim.watchdog.last is not None)
         arm_path, jaw_path = Commander(arm).grasp(attempt)
