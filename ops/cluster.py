@@ -73,8 +73,8 @@ def run_on_cluster(address: str, run: Callable[..., Any], jobs: Sequence[tuple],
                 if stop.is_set():
                     for ref in pending:
                         ray.cancel(ref)  # KeyboardInterrupt in the task: it stops its services
-                    # ... before we leave: a task whose client is gone is killed outright.
-                    ray.wait(pending, num_returns=len(pending), timeout=STOP_WAIT_S)
+                    if pending:  # ... before we leave: a task whose client is gone is killed
+                        ray.wait(pending, num_returns=len(pending), timeout=STOP_WAIT_S)
                     raise interrupted
     finally:
         ray.shutdown()
