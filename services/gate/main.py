@@ -82,6 +82,8 @@ class GateService(Service):
         self._standby: JointPath | None = None  # asked for this frame
         self._beat_at, self._beats = float("-inf"), 0  # the last heartbeat (monotonic s)
         self.bus.watch_alive()
+        self.bus.mark_urgent(DECISION_KEY, ABORT_KEY, HEARTBEAT_KEY, settings.arm_trajectory_key,
+                             settings.jaw_trajectory_key)
         self.bus.subscribe("wavegrasp/perception/object", self.on_observation, ObjectObservation)
         self.bus.subscribe("wavegrasp/predictor/prediction", self.on_prediction, MotionPrediction)
         self.bus.subscribe("wavegrasp/planner/plan", self.on_plan, GraspPlan)

@@ -199,6 +199,7 @@ class Bus:
         self.subscriptions: list[str] = []
         self._routes: list[Callable[[Delivery], None]] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self.urgent: set[str] = set()  # keys sent ahead of the rest (mark_urgent)
         self._seq: Counter[str] = Counter()
         self._keep: list[Any] = []  # subscribers and tokens live as long as the bus
         self._lock = threading.Lock()
@@ -206,11 +207,21 @@ class Bus:
         self.alive_since: dict[str, float] = {}  # monotonic time each token last appeared
 
     # -- publishing ---------------------------------------------------------------------------
+    def mark_urgent(self, *keys: str) -> None:
+        """Send ``keys`` ahead of everything else on every link (zenoh's interactive-high
+        priority, unbatched): the gate's decisions and the arm's commands and state must not
+        wait behind camera clouds on a busy tether. Only ever raised: a service's frame
+        acknowledgement, sent after its data at the normal priority, still never overtakes it."""
+        self.urgent.update(keys)
+
     def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
+            urgent = key in self.urgent
             pub = self.session.declare_publisher(
-                key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK)
+                key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH if urgent else zenoh.Priority.DATA,
+                express=urgent)
             self._publishers[key] = pub
         return pub
 

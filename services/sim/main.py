@@ -134,6 +134,7 @@ class SimService(Service):
         self._plans_flow = False  # a warm prediction or a decision has come: trials begin
         self._held: list[tuple[int, FrameAck, Delivery]] = []  # (truths needed, ack, delivery)
         self.watchdog = Watchdog(settings.watchdog_s)
+        self.bus.mark_urgent(settings.joint_states_key)  # the arm's state, ahead of clouds
         self.state = StateFile(settings.resume_file)
         self._saved: dict | None = None
         self.resume(self.state.load())
