@@ -64,9 +64,7 @@ class Tether:
     def __enter__(self) -> Tether:
         self.check()
         ns, top, veh = self.name, self.topside_end, f"{self.name}v"
-        # What a previous run left behind (killed before it could clean up) goes first.
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-        subprocess.run(["ip", "link", "del", top], capture_output=True)
+        self._remove()  # what a previous run left behind (killed before it could clean up)
         try:
             _run("ip", "netns", "add", ns)
             _run("ip", "link", "add", top, "type", "veth", "peer", "name", veh)
@@ -88,6 +86,10 @@ class Tether:
 
     def __exit__(self, *_exc: object) -> None:
         self._stop.set()
+        self._remove()
+
+    def _remove(self) -> None:
+        """The namespace (with the vehicle's end) and the topside end, if they are there."""
         subprocess.run(["ip", "netns", "del", self.name], capture_output=True)
         subprocess.run(["ip", "link", "del", self.topside_end], capture_output=True)
 

@@ -72,6 +72,31 @@ _U32, _TIME, _U8 = struct.Struct("<I"), struct.Struct("<iI"), struct.Struct("<B"
 _ZEROS = [bytes(k) for k in range(8)]
 
 
+def _bad_string(n: int, p: int) -> None:
+    raise ValueError(f"string of {n} bytes at byte {p} past the end or unterminated")
+
+
+def _read_str(d: bytes, p: int) -> tuple[str, int]:
+    """A string at ``p`` (its length aligned to 4, with the NUL); returns it and the
+    position after it."""
+    p += (4 - p) & 3
+    if p + 4 > len(d):
+        raise ValueError(f"ends at byte {len(d)}, a string's length needed at {p}")
+    n = _U32.unpack_from(d, p)[0]
+    p += 4
+    if n < 1 or p + n > len(d) or d[p + n - 1] != 0:
+        _bad_string(n, p)
+    return d[p:p + n - 1].decode(), p + n
+
+
+def _write_str(b: bytearray, text: str) -> None:
+    data = text.encode()
+    b += _ZEROS[(4 - len(b)) & 3]
+    b += _U32.pack(len(data) + 1)
+    b += data
+    b.append(0)
+
+
 class Writer:
     def __init__(self) -> None:
         self.buf = bytearray(ENCAPSULATION)
@@ -87,11 +112,7 @@ class Writer:
         self.buf += _U32.pack(value)
 
     def string(self, text: str) -> None:
-        data = text.encode()
-        self.pad(4)
-        self.buf += _U32.pack(len(data) + 1)
-        self.buf += data
-        self.buf.append(0)
+        _write_str(self.buf, text)
 
     def time(self, ns: int) -> None:
         """A ``builtin_interfaces`` Time or Duration: int32 seconds, uint32 nanoseconds."""
@@ -141,22 +162,8 @@ class Reader:
         return np.frombuffer(self.data, "<f8", n, self.take(8 * n, 8))
 
     def string(self) -> str:
-        at = self.pos + ((4 - self.pos) & 3)
-        if at + 4 > self.end:
-            raise ValueError(f"ends at byte {self.end}, a string's length needed at {at}")
-        n = _U32.unpack_from(self.data, at)[0]
-        at += 4
-        if n < 1 or at + n > self.end or self.data[at + n - 1] != 0:
-            raise ValueError(f"string of {n} bytes at byte {at} past the end or unterminated")
-        self.pos = at + n
-        return self.data[at:at + n - 1].decode()
-
-    def count(self, least_bytes: int) -> int:
-        """A sequence's length, refused when the rest cannot hold that many elements."""
-        n = self.u32()
-        if n * least_bytes > self.end - self.pos:
-            raise ValueError(f"sequence of {n} at byte {self.pos} longer than the message")
-        return n
+        text, self.pos = _read_str(self.data, self.pos)
+        return text
 
 
 # -- the codecs, generated per model -----------------------------------------------------------
@@ -180,27 +187,6 @@ def _count(d: bytes, p: int, least_bytes: int) -> tuple[int, int]:
     if n * least_bytes > len(d) - p:
         raise ValueError(f"sequence of {n} at byte {p} longer than the message")
     return n, p
-
-
-def _bad_string(n: int, p: int) -> None:
-    raise ValueError(f"string of {n} bytes at byte {p} past the end or unterminated")
-
-
-def _read_str(d: bytes, p: int) -> tuple[str, int]:
-    p += (4 - p) & 3
-    n = _U32.unpack_from(d, p)[0]
-    p += 4
-    if n < 1 or p + n > len(d) or d[p + n - 1] != 0:
-        _bad_string(n, p)
-    return d[p:p + n - 1].decode(), p + n
-
-
-def _write_str(b: bytearray, text: str) -> None:
-    data = text.encode()
-    b += _ZEROS[(4 - len(b)) & 3]
-    b += _U32.pack(len(data) + 1)
-    b += data
-    b.append(0)
 
 
 def _read_seq(one: Read, least_bytes: int) -> Read:
