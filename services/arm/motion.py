@@ -48,6 +48,11 @@ class JointPath:
         self.qd = np.asarray(self.qd, dtype=float).reshape(len(self.times), -1)
         check_path(self.times, self.q, self.qd, self.names)
 
+    @classmethod
+    def at_rest(cls, names: list[str], t_s: float, q: np.ndarray) -> JointPath:
+        """One point: positions ``q`` (n,) held from ``t_s`` on."""
+        return cls(names, [t_s], [q], [np.zeros(len(q))])
+
     @property
     def end_s(self) -> float:
         return float(self.times[-1])

@@ -61,8 +61,7 @@ class Commander:
             self.standby_q = attempt.standby
         t0, t_end = plan.times[0], max(attempt.t_grasp + self.cfg.hold_s, plan.end_s)
         if t_end > plan.end_s:  # hold the grasp
-            plan = plan.then(JointPath(self.names, [t_end], [plan.q[-1]],
-                                       [np.zeros(len(self.names))]))
+            plan = plan.then(JointPath.at_rest(self.names, t_end, plan.q[-1]))
         back = self.back_to_standby(plan.q[-1], np.zeros(len(self.names)), t_end,
                                     self.standby_q)
         path = plan.then(back) if back is not None else plan
@@ -86,7 +85,7 @@ class Commander:
         q, qd = self.arm_path.at(now_s)
         back = self.back_to_standby(q, qd, now_s, self.standby_q, self.cfg.retreat_m)
         if back is None:  # no move found: hold where it is
-            back = JointPath(self.names, [now_s], [q], [np.zeros(len(q))])
+            back = JointPath.at_rest(self.names, now_s, q)
         return self._command(back, self.jaw([(now_s, self.arm.jaw_max_opening_m)]), now_s)
 
     def standby(self, move: JointPath, now_s: float) -> JointPath | None:

@@ -119,14 +119,11 @@ class Executor:
         """Stop where the arm and the jaw are commanded to be now and hold there (the
         watchdog's stop: the link to the gate is gone)."""
         now = self.world.time_s
-        for path in (self.arm_path, self.jaw_path):
-            if path is not None:
-                q, _qd = path.at(now)
-                still = JointPath(path.names, [now], [q], [np.zeros(len(q))])
-                if path is self.arm_path:
-                    self.arm_path, self._at_end = still, False
-                else:
-                    self.jaw_path = still
+        if self.arm_path is not None:
+            self.arm_path = JointPath.at_rest(self.arm_path.names, now, self.arm_path.at(now)[0])
+            self._at_end = False
+        if self.jaw_path is not None:
+            self.jaw_path = JointPath.at_rest(self.jaw_path.names, now, self.jaw_path.at(now)[0])
         self._move_jaw()
 
     def _move_jaw(self) -> None:
