@@ -43,7 +43,8 @@ from wavegrasp.ops.sample import project_root
 #: Every process that opens a session, and the login it uses (the sim is the arm).
 LOGINS = {"router": None, "recorder": "recorder", "perception": "perception",
           "predictor": "predictor", "planner": "planner", "gate": "gate", "sim": "arm",
-          "player": "player", "launcher": "launcher", "health-check": "health-check"}
+          "player": "player", "edge": "edge", "launcher": "launcher",
+          "health-check": "health-check"}
 RULES = Path("ops") / "zenoh" / "acl" / "router.json5"
 VALID_DAYS = 3650
 

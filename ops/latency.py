@@ -32,8 +32,9 @@ CHAIN_KEY = "wavegrasp/gate/decision"
 OBSERVATION_KEY = "wavegrasp/perception/object"
 PREDICTION_KEY = "wavegrasp/predictor/prediction"
 PLAN_KEY = "wavegrasp/planner/plan"
-POINTS_TOPIC = "/trisect/points"
-TOPICS = (POINTS_TOPIC, *own_topics([CHAIN_KEY, OBSERVATION_KEY, PREDICTION_KEY, PLAN_KEY]))
+#: The camera's frames as the run recorded them: its own, or across a tether the edge's.
+POINTS_TOPICS = ("/trisect/points", "/wavegrasp/edge/points")
+TOPICS = (*POINTS_TOPICS, *own_topics([CHAIN_KEY, OBSERVATION_KEY, PREDICTION_KEY, PLAN_KEY]))
 NS_PER_MS = 1e6
 
 
@@ -96,7 +97,7 @@ def read_latency(path: Path) -> Latency:
     try:
         for schema, channel, message in read_mcap(path, TOPICS):
             topic = channel.topic.lstrip("/")
-            if channel.topic == POINTS_TOPIC:
+            if channel.topic in POINTS_TOPICS:
                 point_seqs.add(message.sequence)
                 point_stamps.append((message.sequence, message.log_time))
             elif (own := decode_own(schema, channel, message)) is not None:

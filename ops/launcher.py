@@ -30,7 +30,7 @@ from typing import TextIO
 from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
-from wavegrasp.ops.tether import VEHICLE, Tether
+from wavegrasp.ops.tether import CLOUD_SHARE, VEHICLE, Tether
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.summary import RunSummary
@@ -40,6 +40,9 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
 
 STOP_TIMEOUT_S = 10.0
+#: The camera's clouds, and the edge stage's that cross a tether instead.
+CAMERA_KEY = "trisect/points"
+EDGE_POINTS_KEY = "wavegrasp/edge/points"
 #: As compose restarts a service: after 100 ms, doubling with each restart in a row, reset once
 #: it has stayed up this long.
 RESTART_DELAY_S = 0.1
@@ -237,21 +240,23 @@ class Launcher:
     def stop_all(self) -> None:
         """Stop the services together (each notices SIGTERM within a turn of its loop, about
         0.1 s: one by one, a run's eight took 0.6 s), then those labelled
-        wavegrasp.stop-late (the recorder: it records the others' last counters), the router,
+        wavegrasp.stop-late (the recorder: it records the others' last counters), the routers,
         and those labelled wavegrasp.stop-last (the viewer), which outlive what feeds them."""
         def labelled(label: str) -> list[str]:
             return [n for n in self.started if self.services[n].labels.get(label)]
 
         late, last = labelled("wavegrasp.stop-late"), labelled("wavegrasp.stop-last")
-        first = [n for n in reversed(self.started) if n not in {*late, *last, "router"}]
+        # The vehicle's router too (a tether): the last counters of its services cross it.
+        routers = [n for n in self.started if n in ("router", "vehicle-router")]
+        first = [n for n in reversed(self.started) if n not in {*late, *last, *routers}]
         self.stop_together(first)
         self.stop_together(late)
-        if "router" in self.started:
+        if routers:
             if self.bus is not None:
                 self.pump_bus()
                 self.bus.close()
                 self.bus = None
-            self.stop_together(["router"])
+            self.stop_together(routers)
         self.stop_together(last)
         if self.bus is not None:
             self.bus.close()
@@ -391,8 +396,12 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         tether.check()
         # No shared-memory pool: a frame in it would reach the topside past the tether.
         env["WAVEGRASP_SHARED_MEMORY_MB"] = "0"
-    services = load_compose(compose_path, env,
-                            frozenset({"viewer"}) if args.viewer else frozenset())
+        # The edge stage's clouds cross it, the camera's own stay on the vehicle.
+        env["WAVEGRASP_POINTS_KEY"] = EDGE_POINTS_KEY
+        env.setdefault("WAVEGRASP_EDGE_MBIT", f"{CLOUD_SHARE * args.tether:g}")
+    profiles = {"viewer"} if args.viewer else set()
+    services = load_compose(compose_path, env, frozenset(
+        profiles | {"edge"} if tether is not None else profiles))
     if tether is not None:
         across_tether(services, tether, free_port())
     out.mkdir(parents=True, exist_ok=True)
@@ -402,11 +411,13 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
 
 def across_tether(services: dict[str, ComposeService], tether: Tether, port: int) -> None:
     """Put the vehicle's services in the tether's namespace with a router of their own on
-    ``port`` there, which the topside router reaches across the tether."""
+    ``port`` there, which the topside router reaches across the tether, and which never
+    sends the camera's full clouds across it; the player waits for the edge stage."""
     router = services["router"]
     vehicle_router = replace(router, name="vehicle-router", environment={
         **router.environment, "WAVEGRASP_NETNS": tether.name,
-        "ZENOH_LISTEN": f"tcp/127.0.0.1:{port},tcp/{tether.vehicle_ip}:{port}"})
+        "ZENOH_LISTEN": f"tcp/127.0.0.1:{port},tcp/{tether.vehicle_ip}:{port}",
+        "WAVEGRASP_HOLD_KEYS": CAMERA_KEY, "WAVEGRASP_HOLD_INTERFACES": tether.vehicle_end})
     router.environment["WAVEGRASP_ROUTER_CONNECT"] = f"tcp/{tether.vehicle_ip}:{port}"
     router.depends_on = {**router.depends_on, "vehicle-router": "service_started"}
     services["vehicle-router"] = vehicle_router
@@ -414,6 +425,11 @@ def across_tether(services: dict[str, ComposeService], tether: Tether, port: int
         if name in services:
             services[name].environment.update({
                 "WAVEGRASP_NETNS": tether.name, "ZENOH_CONNECT": f"tcp/127.0.0.1:{port}"})
+    player = services.get("player")
+    if player is not None and "edge" in services:
+        player.depends_on = {**player.depends_on, "edge": "service_healthy"}
+        waits = player.environment.get("WAVEGRASP_WAIT_FOR", "")
+        player.environment["WAVEGRASP_WAIT_FOR"] = ",".join(filter(None, [waits, "edge"]))
 
 
 def execute(run: Run) -> str:

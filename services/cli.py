@@ -14,6 +14,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("wavegrasp.router.main", "the zenoh router the services connect to"),
     "player": ("wavegrasp.player.main", "replay a recording (MCAP, ROS 1 bag, ROS 2 bag)"),
     "recorder": ("wavegrasp.recorder.main", "record every message on the bus to run.mcap"),
+    "edge": ("wavegrasp.edge.main", "on the vehicle: camera clouds cut down to what the "
+             "tether carries"),
     "perception": ("wavegrasp.perception.main", "point clouds -> the object's centroid and mesh"),
     "predictor": ("wavegrasp.predictor.main", "centroids -> the object's motion a period ahead"),
     "planner": ("wavegrasp.planner.main", "predictions -> a grasp and its timed trajectory"),
@@ -28,6 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "messages: what it plans, prediction by prediction"),
     "faults": ("wavegrasp.ops.faults", "run the pipeline, inject faults (bad input, crashes, "
                "bad files) and report what survived"),
+    "soak": ("wavegrasp.ops.soak", "run a recording looped for a long while and watch every "
+             "service's memory and every frame"),
     "record": ("wavegrasp.wavetank.record", "generate a wave-tank recording from physics"),
     "health": ("wavegrasp.ops.health", "exit 0 if a service's liveliness token is up"),
     "keys": ("wavegrasp.ops.keys", "this installation's logins and TLS certificates for "
@@ -36,7 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 
 #: The commands that run a service loop (:class:`wavegrasp.runtime.service.Service`).
-SERVICES = {"player", "recorder", "perception", "predictor", "planner", "gate", "sim"}
+SERVICES = {"player", "edge", "recorder", "perception", "predictor", "planner", "gate", "sim"}
 
 
 #: One thread per process for the numeric libraries unless the user says otherwise. A pipeline

@@ -1,4 +1,4 @@
-"""``wavegrasp perception``: ``trisect/points`` + ``tf_static`` -> the object's centroid and mesh.
+"""``wavegrasp perception``: camera clouds (``points_key``) + ``tf_static`` -> the object.
 
 Publishes one ``wavegrasp/perception/object`` per camera frame: the volume centroid in
 ``world`` with its uncertainty, or no centroid and the reason (empty cloud, unknown frame, no
@@ -54,6 +54,8 @@ MESH_KEY = "wavegrasp/perception/mesh"
 
 
 class PerceptionSettings(Settings):
+    points_key: str = Field("trisect/points", description="the camera's clouds (across a "
+                            "tether, the edge's: wavegrasp/edge/points)")
     mesh_period_s: float = Field(2.0, description="the least between rebuilds (counted in "
                                  "frames at 10 Hz)")
     mesh_max_period_s: float = Field(20.0, description="later rebuilds wait as many frames "
@@ -145,7 +147,7 @@ class PerceptionService(Service):
         self._held_acks: list[tuple[Header, int, int]] = []  # frames after a mesh job began
         self.reader = WindowReader(settings.read_windows, settings.window_max_points)
         self.bus.subscribe("tf_static", self.on_tf)
-        self.bus.subscribe("trisect/points", self.on_points)
+        self.bus.subscribe(settings.points_key, self.on_points)
 
     def on_tf(self, d: Delivery) -> None:
         self.tf.update(decode_tf(d.payload))

@@ -60,6 +60,10 @@ from wavegrasp.schemas import (
     Vec3,
 )
 
+#: Predictions whose data's age judges an update's delay, and what planning, the hop to the
+#: gate and its decision add to it (an update plans in about 10 ms, p95).
+UPDATE_AGES = 20
+GATE_ALLOWANCE_S = 0.015
 log = logging.getLogger("wavegrasp.planner")
 PLAN_KEY = "wavegrasp/planner/plan"
 STANDBY_KEY = "wavegrasp/planner/standby"
@@ -172,6 +176,8 @@ class PlannerService(Service):
         self.frames: deque[tuple[int, np.ndarray]] = deque(maxlen=300)
         self._misfits = 0  # round bodies' axes skipped in a row (:meth:`misfit`)
         self._hint: Hint | None = None  # the last plan's grasp, tried first next time
+        #: How old the latest predictions' data was on arrival, wall seconds (:meth:`delay_s`).
+        self._ages: deque[float] = deque(maxlen=UPDATE_AGES)
         #: The last plan sent (its id, the plan, the approved plan it updates or None) and,
         #: once the gate approves it, the executing one: updated on every warm prediction
         #: in closed-loop execution.
@@ -311,6 +317,9 @@ class PlannerService(Service):
         fail, and a plan from an older prediction would only be late (one that comes after a
         newer one is refused)."""
         self._order.check(msg.header.stamp_ns)
+        if msg.header.trace and self.clock.rate > 0:
+            self._ages.append(max(0.0, (d.recv_ns - msg.header.trace[0].recv_ns) / 1e9
+                                  * self.clock.rate))
         if self._pending is not None:
             self.counters["skipped: superseded"] += 1
         self._pending = (msg, d)
@@ -429,8 +438,10 @@ class PlannerService(Service):
         T_world_base = self.tf.lookup("world", self.arm.base_link)
         path = PredictedPath.from_message(msg)
         now = msg.header.stamp_ns * 1e-9
+        delay_s = self.delay_s()
+        config = self.config.model_copy(update={"update_delay_s": delay_s})
         result = update_plan(plan, path, now, self.arm, T_world_base,
-                             self.turning(path.period_s), self.config)
+                             self.turning(path.period_s), config)
         if isinstance(result, str):
             self.counters[f"update: {result}"] += 1
             return
@@ -439,10 +450,22 @@ class PlannerService(Service):
             self.counters["updates: contact ahead"] += 1
         standby = self.return_pose(T_world_base, msg.header.stamp_ns)
         sent = to_message(result, msg, d.recv_ns, self.arm, self.name, standby, update_of=root,
-                          since=now + self.config.update_delay_s)
+                          since=now + delay_s)
         self._t_grasp = {sent.plan_id: sent.t_grasp_ns}
         self._sent = (sent.plan_id, result, root)
         self.bus.publish(PLAN_KEY, sent)
+
+    def delay_s(self) -> float:
+        """How long after its prediction an update takes over: ``update_delay_s``, or more
+        where the data comes late. The gate approves an update only if it takes over at
+        least as long from its decision as the data took to reach it (the time for the path
+        to reach the arm), so with data reaching the gate ``L`` s after the camera the update
+        must take over at least ``2 L`` after the frame: across a tether L was 60-80 ms and
+        every update at 100 ms was refused. ``L`` is judged by the oldest of the last
+        predictions' arrivals (their traces: the camera's publish time to here, at the
+        recording's rate), and what the gate adds after here."""
+        latest = max(self._ages, default=0.0) + GATE_ALLOWANCE_S
+        return max(self.config.update_delay_s, 2 * latest)
 
     def rehearse(self, msg: MotionPrediction, d: Delivery, path: PredictedPath,
                  T_world_base: np.ndarray, result: Plan | Counter) -> None:

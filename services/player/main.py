@@ -30,6 +30,7 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal
 
@@ -77,6 +78,10 @@ class PlayerSettings(Settings):
     wait_for: list[str] = Field(default_factory=list,
                                 description="services whose liveliness to await before playing")
     wait_timeout_s: float = Field(30.0, gt=0)
+    loops: int = Field(1, ge=1, description="play the recording this many times, each "
+                       "after the last with every time (log time, header stamps) moved on "
+                       "by the recording's length and one frame: one stream as long as the "
+                       "loops (a soak)")
     resume_file: Path | None = Field(None, description="where the player notes how far it "
                                      "got after each camera frame; a restarted player "
                                      "resumes from there (same recording only)")
@@ -199,7 +204,7 @@ class Player(Service):
         start = time.monotonic()
         last_seq = -1
         resume_ns = self.resume_point()
-        for msg in self.recording.messages():
+        for msg in self.looped():
             if self.stopping.is_set():
                 break
             if resume_ns is not None and msg.log_time_ns <= resume_ns:
@@ -239,6 +244,25 @@ class Player(Service):
         log.info("played %d messages, %d camera frames from %s in %.1f s", self.messages,
                  self.frames, self.recording.path, time.monotonic() - start)
         return 0
+
+    def looped(self) -> Iterator[RecordedMessage]:
+        """The recording's messages ``loops`` times over, each loop after the last (a frame
+        period, judged by its last two frames, between them)."""
+        offset_ns, span_ns, frame_ns, period_ns = 0, 0, 0, 100_000_000
+        for n in range(self.cfg.loops):
+            first_ns = None
+            for msg in self.recording.messages():
+                first_ns = msg.log_time_ns if first_ns is None else first_ns
+                span_ns = max(span_ns, msg.log_time_ns - first_ns)
+                if msg.topic == POINTS_TOPIC:
+                    if 0 < msg.log_time_ns - frame_ns < period_ns * 10:
+                        period_ns = msg.log_time_ns - frame_ns
+                    frame_ns = msg.log_time_ns
+                yield msg.shifted(offset_ns)
+            offset_ns += span_ns + period_ns
+            if n + 1 < self.cfg.loops:
+                log.info("loop %d of %d done: %d camera frames so far", n + 1, self.cfg.loops,
+                         self.frames)
 
     def on_stop(self) -> None:
         self.state.clear()  # stopped, not crashed: the next run starts from the beginning

@@ -82,12 +82,13 @@ if TYPE_CHECKING:
     from wavegrasp.recorder.rerun_log import RerunLog
 
 log = logging.getLogger("wavegrasp.recorder")
-POINTS_KEY = "trisect/points"
 OBJECT_POINTS_KEY = "wavegrasp/perception/points"
 TRUTH_KEY = "groundtruth/object"
 
 
 class RecorderSettings(Settings):
+    points_key: str = Field("trisect/points", description="the camera's clouds, whose frames "
+                            "it acknowledges (across a tether, the edge's)")
     out: Path = Path("out")
     flush_period_s: float = 0.5
     record_keys: list[str] = Field(default_factory=lambda: ["**"],
@@ -149,6 +150,7 @@ class Recorder(Service):
         settings.out.mkdir(parents=True, exist_ok=True)
         self.path = free_run_path(settings.out)
         self.flush_period_s = settings.flush_period_s
+        self.points_key = settings.points_key
         self._file = self.path.open("wb")
         self.writer = Writer(self._file,
                              compression=CompressionType[settings.mcap_compression.upper()])
@@ -226,7 +228,7 @@ class Recorder(Service):
             self.tf.update(decode_tf(d.payload))
             with contextlib.suppress(ValueError):  # the arm's mount may come in a later one
                 r.mount(self.tf.lookup("world", self.arm.base_link))
-        elif d.key == POINTS_KEY:
+        elif d.key == self.points_key:
             cloud = decode_points(d.payload)
             T = self.tf.lookup("world", cloud.frame_id)
             r.cloud(cloud.stamp_ns, cloud.points @ T[:3, :3].T + T[:3, 3])
@@ -265,8 +267,8 @@ class Recorder(Service):
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
         # Camera clouds as the thinner says (all are acknowledged).
         write = not self.skips(d.key) and (
-            d.key != POINTS_KEY or self.thinner.keep(len(d.payload), log_time))
-        if d.key == POINTS_KEY and self.thinner.count == SAMPLE and self.thinner.rate_mb_s:
+            d.key != self.points_key or self.thinner.keep(len(d.payload), log_time))
+        if d.key == self.points_key and self.thinner.count == SAMPLE and self.thinner.rate_mb_s:
             log.info("camera clouds: %.1f MB a second: writing one in %d (cloud_every, "
                      "cloud_budget_mb_s)", self.thinner.rate_mb_s, self.thinner.every)
         if write:
@@ -277,8 +279,9 @@ class Recorder(Service):
             self.writer.add_message(channel, log_time, d.payload, log_time,
                                     sequence=(att.seq if att else 0) & 0xFFFFFFFF)
             self.written += 1
-        if d.key == POINTS_KEY and att is not None:
+        if d.key == self.points_key and att is not None:
             self.frames += 1
+            self.counters["frames"] = self.frames
             self._flush_if_due()
             self.ack_frame(Header(seq=att.seq, stamp_ns=log_time, trace=[Hop(
                 service="source", recv_ns=att.source_ns, sent_ns=att.source_ns)]),

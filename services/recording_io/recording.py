@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import functools
+import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
+
+from wavegrasp.recording_io.typestore import ros2_typestore
 
 CONTRACT_TOPICS = ("/trisect/points", "/tf_static", "/groundtruth/object")
 Format = Literal["mcap", "ros1", "ros2"]
@@ -71,6 +75,26 @@ class RecordedMessage:
     msgtype: str
     log_time_ns: int
     cdr: bytes
+
+    def shifted(self, offset_ns: int) -> RecordedMessage:
+        """The message ``offset_ns`` later: its log time, and its header's stamp if it opens
+        with a ``std_msgs/Header`` (a cloud, a pose; static transforms keep theirs)."""
+        if not offset_ns:
+            return self
+        cdr = self.cdr
+        if has_header(self.msgtype) and len(cdr) >= 12:
+            order = "<" if cdr[1] & 1 else ">"  # the encapsulation's byte order
+            sec, nanosec = struct.unpack_from(f"{order}iI", cdr, 4)
+            stamp = sec * 1_000_000_000 + nanosec + offset_ns
+            cdr = cdr[:4] + struct.pack(f"{order}iI", *divmod(stamp, 1_000_000_000)) + cdr[12:]
+        return replace(self, log_time_ns=self.log_time_ns + offset_ns, cdr=cdr)
+
+
+@functools.cache
+def has_header(msgtype: str) -> bool:
+    """Whether ``msgtype``'s first field is a ``std_msgs/msg/Header``."""
+    fields = ros2_typestore().fielddefs.get(msgtype, ((), ()))[1]
+    return bool(fields) and fields[0][1][1] == "std_msgs/msg/Header"
 
 
 @dataclass

@@ -147,6 +147,8 @@ def zenoh_config(settings: Settings, shared_memory: bool | None = None) -> zenoh
         conf.insert_json5("connect/endpoints", json.dumps(settings.router_connect))
         conf.insert_json5("connect/exit_on_failure", json.dumps({"router": False}))
     conf.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
+    if settings.zenoh_mode == "router" and settings.hold_keys and settings.hold_interfaces:
+        hold_back(conf, settings.hold_keys, settings.hold_interfaces)
     conf.insert_json5("scouting/multicast/enabled", "false")
     if shared_memory is None:
         shared_memory = shared_memory_on(settings)
@@ -157,6 +159,23 @@ def zenoh_config(settings: Settings, shared_memory: bool | None = None) -> zenoh
     if json.loads(conf.get_json(SCOUTING_DELAY)) is None:
         conf.insert_json5(SCOUTING_DELAY, "0")
     return conf
+
+
+def hold_back(conf: zenoh.Config, keys: list[str], interfaces: list[str]) -> None:
+    """A router's ``conf`` never sends a publication on ``keys`` out through ``interfaces``
+    (zenoh's access control, a deny rule per interface: a deny wins over any allow): added to
+    the file's own rules if it has any, else alone with everything else allowed."""
+    acl = json.loads(conf.get_json("access_control"))
+    if not acl.get("enabled"):
+        acl = {"enabled": True, "default_permission": "allow", "rules": [], "subjects": [],
+               "policies": []}
+    acl["rules"] = [*acl.get("rules", []), {
+        "id": "hold back", "permission": "deny", "flows": ["egress"],
+        "messages": ["put", "delete"], "key_exprs": keys}]
+    acl["subjects"] = [*acl.get("subjects", []), {"id": "held", "interfaces": interfaces}]
+    acl["policies"] = [*acl.get("policies", []), {
+        "id": "hold back", "rules": ["hold back"], "subjects": ["held"]}]
+    conf.insert_json5("access_control", json.dumps(acl))
 
 
 def open_session(settings: Settings, shared_memory: bool | None = None) -> zenoh.Session:
@@ -240,12 +259,18 @@ class Bus:
             self._publisher(key, zenoh.Encoding(f"{JSON};{name}")).put(
                 msg.model_dump_json().encode())
 
-    def publish_cdr(self, key: str, cdr: bytes, msgtype: str, log_time_ns: int = 0) -> int:
-        """Publish CDR bytes unchanged on ``key`` with an attachment; returns its sequence."""
+    def publish_cdr(self, key: str, cdr: bytes, msgtype: str, log_time_ns: int = 0,
+                    source: CdrAttachment | None = None) -> int:
+        """Publish CDR bytes unchanged on ``key`` with an attachment; returns its sequence.
+        ``source``: the attachment of the message this one stands for (a camera frame the
+        edge reduced), whose sequence, publish time and log time it keeps, so frames are
+        acknowledged and timed from the camera as before."""
         with self._lock:
-            seq = self._seq[key]
+            seq = self._seq[key] if source is None else source.seq
             self._seq[key] += 1
-        att = CdrAttachment(seq, time.time_ns(), publisher_gid(self.service, key), log_time_ns)
+        gid = publisher_gid(self.service, key)
+        att = (CdrAttachment(seq, time.time_ns(), gid, log_time_ns) if source is None else
+               CdrAttachment(seq, source.source_ns, gid, source.log_time_ns))
         self._publisher(key, zenoh.Encoding(f"{CDR};{msgtype}")).put(
             self.shared_payload(key, cdr), attachment=att.encode())
         return seq

@@ -38,6 +38,13 @@ class Settings(BaseModel):
     router_connect: list[str] = Field(
         default_factory=list, description="a router's links to other routers (the vehicle's, "
         "across the tether); a client's are zenoh_connect")
+    hold_keys: list[str] = Field(
+        default_factory=list, description="a router's: key expressions it never sends out "
+        "through hold_interfaces (the vehicle's: the camera's full clouds stay off the "
+        "tether, whoever subscribes to them topside)")
+    hold_interfaces: list[str] = Field(
+        default_factory=list, description="the network interfaces hold_keys stay off (the "
+        "tether's)")
     zenoh_mode: Literal["client", "peer", "router"] = "client"
     zenoh_config: str | None = Field(
         None, description="zenoh JSON5 file (credentials, access control, TLS) applied under "
