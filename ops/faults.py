@@ -12,6 +12,11 @@ generated once into the cache) and, while it runs:
    for the recorder, also the seconds of the run missing from its files.
 3. **bad files**: the player on random bytes, a text file and an MCAP header with nothing
    after it; survived when it exits with one clear line naming the file and no traceback.
+4. with ``--tether MBIT`` (``wavegrasp up --tether``; then no kills unless ``--kill`` names
+   some): **tether cuts** of 2 s, 0.3 s after the first approach is approved and then while
+   the arm is idle; survived when the arm's side stopped within its watchdog time (the sim's
+   own count of the time since the last heartbeat), and every service was heard from again
+   after the link returned; the run must end with a grasp.
 
 Then it checks the gate approved nothing while an upstream service was down, prints a table
 and writes ``OUT/faults.json`` beside the run's ``summary.json``. Exit code 0 when everything
@@ -40,7 +45,14 @@ from wavegrasp.ops.sample import cached_recording
 from wavegrasp.recording_io.reader import RecordingError, read_mcap
 from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.schemas import ROS_KEYS, Clock, FrameAck, GateDecision, ServiceStats
+from wavegrasp.schemas import (
+    ROS_KEYS,
+    Clock,
+    FrameAck,
+    GateDecision,
+    GraspOutcome,
+    ServiceStats,
+)
 
 #: Malformed payloads by kind: what a stray or broken publisher could send.
 BAD_INPUTS: dict[str, bytes] = {
@@ -55,6 +67,16 @@ KILL_ORDER = ["perception", "predictor", "planner", "gate", "sim", "recorder", "
 BACK_WITHIN_S = 5.0
 WAIT_BACK_S = 15.0  # the longest a killed service is waited for before the next kill
 FRAMES_KEY = "trisect/points"
+#: A tether cut: how long, and how long after a go it comes during an approach.
+CUT_S = 2.0
+CUT_AFTER_GO_S = 0.3
+#: The sim's watchdog time (SimSettings.watchdog_s, unless WAVEGRASP_WATCHDOG_S says).
+WATCHDOG_S = float(os.environ.get("WAVEGRASP_WATCHDOG_S", "0.5"))
+STOPS = "watchdog: stopped, no heartbeat"
+STOP_MS = "watchdog: the last stop, ms after the last heartbeat"
+REFUSED_CUT = "paths refused: no heartbeat"
+REFUSED_STALE = "paths refused: stale"
+SIM_WATCH = (STOPS, REFUSED_CUT, REFUSED_STALE)
 
 
 @dataclass
@@ -94,7 +116,10 @@ class Watch:
     frames: list[tuple[float, int]] = field(default_factory=list)  # (monotonic, published)
     acks: dict[str, set[int]] = field(default_factory=lambda: defaultdict(set))
     gos: list[float] = field(default_factory=list)  # monotonic times of go decisions
+    approaches: list[float] = field(default_factory=list)  # of them, a plan's first
+    outcomes: list[float] = field(default_factory=list)  # monotonic times of grasp outcomes
     stats: dict[str, ServiceStats] = field(default_factory=dict)
+    stats_at: dict[str, float] = field(default_factory=dict)  # monotonic, the latest's arrival
 
     def on_clock(self, msg: Clock, _d: Delivery) -> None:
         if FRAMES_KEY in msg.published:
@@ -106,9 +131,19 @@ class Watch:
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
         if msg.go:
             self.gos.append(time.monotonic())
+            if msg.reason != "go: update":
+                self.approaches.append(time.monotonic())
+
+    def on_outcome(self, _msg: GraspOutcome, _d: Delivery) -> None:
+        self.outcomes.append(time.monotonic())
 
     def on_stats(self, msg: ServiceStats, _d: Delivery) -> None:
         self.stats[msg.service] = msg
+        self.stats_at[msg.service] = time.monotonic()
+
+    def counter(self, service: str, name: str) -> int:
+        stats = self.stats.get(service)
+        return int(stats.counters.get(name, 0)) if stats is not None else 0
 
     def frames_between(self, t0: float, t1: float) -> range:
         """Sequence numbers of the camera frames published between two monotonic times."""
@@ -138,6 +173,7 @@ class Injector:
         bus.subscribe("wavegrasp/clock", w.on_clock, Clock)
         bus.subscribe("wavegrasp/*/ack", w.on_ack, FrameAck)
         bus.subscribe("wavegrasp/gate/decision", w.on_decision, GateDecision)
+        bus.subscribe("wavegrasp/sim/outcome", w.on_outcome, GraspOutcome)
         bus.subscribe("wavegrasp/*/stats", w.on_stats, ServiceStats)
         return bus
 
@@ -159,6 +195,9 @@ class Injector:
             for name in self.kill:
                 self.crash(name)
                 self.pump(self.pause_s)
+            if self.run.tether is not None:
+                self.cut_tether("during an approach")
+                self.cut_tether("while idle")
         finally:
             self.bus.close()
 
@@ -200,6 +239,53 @@ class Injector:
             self.pump(0.1)
         self.pump(1.0)
 
+    def cut_tether(self, when: str) -> None:
+        """Cut the tether for ``CUT_S`` (during an approach: ``CUT_AFTER_GO_S`` after the
+        next go, if one comes while the run lasts) and judge: the arm's side stopped within
+        its watchdog time, it took no path while cut off or stale, and every service was
+        heard from again (its stats) after the link returned."""
+        tether, w = self.run.tether, self.watch
+        assert tether is not None
+        if when == "during an approach":  # the next plan approved
+            approaches = len(w.approaches)
+            while len(w.approaches) == approaches and not self.ended():
+                self.pump(0.05)
+            self.pump(CUT_AFTER_GO_S)
+        else:  # no attempt under way: each approach has its outcome
+            while len(w.outcomes) < len(w.approaches) and not self.ended():
+                self.pump(0.05)
+        if self.ended():
+            return
+        before = {k: w.counter("sim", k) for k in SIM_WATCH}
+        fault = Fault("tether cut", when, self.now_s())
+        self.faults.append(fault)
+        tether.cut(True)
+        self.pump(CUT_S)
+        tether.cut(False)
+        joined = time.monotonic()
+        names = [n for n in self.run.launcher.services if n != "vehicle-router"
+                 and n in w.stats]
+        while (missing := [n for n in names if w.stats_at.get(n, 0.0) <= joined]) and (
+                time.monotonic() - joined < WAIT_BACK_S):
+            self.pump(0.1)
+        self.pump(1.0)
+        delta = {k: w.counter("sim", k) - before[k] for k in SIM_WATCH}
+        stop_ms = w.counter("sim", STOP_MS)
+        limit_ms = 1e3 * WATCHDOG_S + 100  # the watchdog's time and two of its checks
+        fault.back_after_s = round(max(w.stats_at.get(n, 0.0) for n in names) - joined, 2)
+        fault.survived = not missing and delta[STOPS] >= 1 and stop_ms <= limit_ms
+        fault.lost = (f"arm stopped {stop_ms} ms after the last heartbeat ({delta[STOPS]} "
+                      f"stop); paths refused: {delta[REFUSED_CUT]} without heartbeat, "
+                      f"{delta[REFUSED_STALE]} stale; "
+                      + (f"not heard from again: {', '.join(missing)}" if missing else
+                         "every service heard from again"))
+
+    def ended(self) -> bool:
+        launcher = self.run.launcher
+        return launcher.interrupted.is_set() or any(
+            launcher.procs[n].poll() is not None for n in ("player", "sim")
+            if n in launcher.procs)
+
     def settle(self, summary: dict) -> None:
         """Judge each fault once the run is over."""
         for fault in self.faults:
@@ -226,6 +312,15 @@ class Injector:
                 fault.lost_s, text = recorded_loss(self.run.out, self.watch.acks["recorder"],
                                                    summary["player"].get("frames", 0))
                 fault.lost += f"; {text}"
+        cuts = [f for f in self.faults if f.kind == "tether cut"]
+        if cuts:
+            outcomes = summary.get("outcomes") or []
+            grasped = bool(outcomes) and bool(outcomes[-1].get("success"))
+            self.faults.append(Fault(
+                "grasp after the cuts", "sim", 0.0, survived=grasped and len(cuts) == 2,
+                lost=f"{len(cuts)} cuts; attempts: " + ", ".join(
+                    "success" if o.get("success") else str(o.get("failure") or "aborted")
+                    for o in outcomes) if outcomes else "no attempt"))
         approved = [t for t in self.watch.gos for down in self.down
                     if down.name in ("perception", "predictor", "planner", "router")
                     and down.died + 0.1 < t < (down.back or math.inf)]
@@ -297,20 +392,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("recording", nargs="?", type=Path,
                    help="default: a 40 s recording (wave 1, buoy, seed 0) from the cache")
     p.add_argument("--out", type=Path, help="run folder (default: runs/faults-<date-time>)")
-    p.add_argument("--kill", default=",".join(KILL_ORDER),
-                   help=f"services to kill, in order (default {','.join(KILL_ORDER)})")
+    p.add_argument("--kill", help="services to kill, in order (default "
+                   f"{','.join(KILL_ORDER)}; with --tether none)")
+    p.add_argument("--tether", type=float, metavar="MBIT",
+                   help="run as `wavegrasp up --tether MBIT` and cut the tether for 2 s, "
+                   "once while idle and once during an approach")
     p.add_argument("--pause-s", type=float, default=2.0,
                    help="seconds between a service's return and the next kill")
     a = p.parse_args(argv)
     recording = a.recording or cached_recording(wave=1, object="buoy", seconds=40.0, seed=0)
     out = a.out or Path("runs") / time.strftime("faults-%Y%m%d-%H%M%S")
     try:
+        tether = ["--tether", str(a.tether)] if a.tether is not None else []
         run = up.prepare(up.parse_args([str(recording), "--pace", "realtime",
-                                        "--out", str(out)]))
+                                        "--out", str(out), *tether]))
     except ValueError as exc:
         print(f"wavegrasp faults: {exc}", file=sys.stderr)
         return 2
-    kill = [k for k in a.kill.split(",") if k]
+    kill_list = a.kill if a.kill is not None else "" if a.tether else ",".join(KILL_ORDER)
+    kill = [k for k in kill_list.split(",") if k]
     unknown = [k for k in kill if k not in run.launcher.services]
     if unknown:
         print(f"wavegrasp faults: --kill: no service {', '.join(unknown)}", file=sys.stderr)

@@ -98,6 +98,11 @@ class Tether:
         self._stop.set()
         self._remove()
 
+    def cut(self, down: bool = True) -> None:
+        """Cut the tether (its topside end down: nothing crosses either way) or, with
+        ``down`` False, join it again."""
+        _run("ip", "link", "set", self.topside_end, "down" if down else "up")
+
     def _remove(self) -> None:
         """The namespace (with the vehicle's end) and the topside end, if they are there."""
         subprocess.run(["ip", "netns", "del", self.name], capture_output=True)

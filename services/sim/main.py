@@ -223,11 +223,18 @@ class SimService(Service):
             if not self.watchdog.check(time.monotonic()):
                 return
             self.counters["watchdog: stopped, no heartbeat"] += 1
+            assert self.watchdog.last is not None
+            self.counters["watchdog: the last stop, ms after the last heartbeat"] = int(
+                (time.monotonic() - self.watchdog.last) * 1e3)
             log.warning("no heartbeat from the gate for %.1f s: the arm stops and holds",
                         self.watchdog.timeout_s)
             self._paths.clear()
             if self.executor is not None:
                 self.executor.hold()
+                if self.executor.attempt is not None:  # its plan assumed an arm that went on
+                    self.publish_outcome(self.executor.abort(
+                        f"no heartbeat from the gate for {self.watchdog.timeout_s:.1f} s: "
+                        "the arm held"))
 
     def on_heartbeat(self, _msg: Heartbeat, _d: Delivery) -> None:
         if self.watchdog.beat(time.monotonic()):

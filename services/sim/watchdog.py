@@ -4,7 +4,8 @@ On a vehicle the gate is topside, across a tether that can drop; an arm that wen
 following its last trajectory would move on commands nobody can revise or abort. So the
 arm's side (the sim, or a real arm's driver) watches the gate's heartbeats
 (``wavegrasp/gate/heartbeat``): armed by the first, it trips once ``timeout_s`` of wall time
-pass without one, and the arm holds where it is commanded to be; while tripped, new paths are
+pass without one, and the arm holds where it is commanded to be (an attempt under way ends
+there, aborted: its plan's updates assumed an arm that went on); while tripped, new paths are
 refused; the next heartbeat re-arms it. Times are monotonic seconds.
 """
 
