@@ -272,3 +272,43 @@ def test_shared_memory_only_where_locked_memory_is_unlimited(ipc_lock: bool) -> 
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ("None" if ipc_lock else "4194304")
+
+
+def test_a_router_holds_its_hold_keys_off_the_hold_interfaces(tmp_path: Path) -> None:
+    """The vehicle's router never sends the camera's full clouds out through the tether's
+    interface, whoever subscribes to them there (zenoh's access control per interface);
+    everything else passes. Here the held interface is the loopback, the subscriber's."""
+    from wavegrasp.runtime.bus import Bus
+    from wavegrasp.runtime.settings import Settings
+
+    from conftest import free_port, wavegrasp_cmd
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    proc = spawn(wavegrasp_cmd("router", "--listen", endpoint),
+                 {"WAVEGRASP_HOLD_KEYS": "trisect/points", "WAVEGRASP_HOLD_INTERFACES": "lo"})
+    env = {"ZENOH_CONNECT": endpoint}
+    camera = topside = None
+    try:
+        camera = Bus(Settings.from_env("player", env=env, connect_timeout_s=15))
+        topside = Bus(Settings.from_env("recorder", env=env))
+        got: list[str] = []
+        topside.subscribe("**", lambda d: got.append(d.key))
+        time.sleep(0.5)
+        for _ in range(5):
+            camera.publish_bytes("trisect/points", b"cloud")
+            camera.publish_bytes("tf_static", b"frames")
+        def drain() -> int:
+            while not topside.inbox.empty():
+                topside.dispatch(topside.inbox.get())
+            return got.count("tf_static")
+
+        assert wait_until(lambda: drain() == 5, timeout=10)
+        time.sleep(0.3)  # the clouds, sent alongside, would have come by now
+        drain()
+        assert "trisect/points" not in got
+    finally:
+        for bus in (camera, topside):
+            if bus is not None:
+                bus.close()
+        stop(proc)

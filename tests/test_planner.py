@@ -53,8 +53,10 @@ from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.trace import new_header
 from wavegrasp.schemas import (
     ArmStandby,
+    Clock,
     GraspOutcome,
     GraspPlan,
+    Hop,
     MotionPrediction,
     ObjectObservation,
     PredictionSample,
@@ -1399,5 +1401,34 @@ def test_in_real_time_the_planner_takes_at_most_its_share_of_the_time(router: Ro
         else:
             assert service._pending is None
         assert service.counters["plans"] == 2 and service.counters["skipped: superseded"] == 1
+    finally:
+        service.bus.close()
+
+
+def test_an_update_takes_over_after_twice_the_datas_age_when_the_data_comes_late(
+        router: Router, arm: ArmModel) -> None:
+    """The gate approves an update only if it takes over at least as long after its
+    decision as the data took to reach it: across a tether (data 60 ms old) the updates'
+    100 ms were too soon for every one. The planner judges the age from the predictions'
+    traces (the camera's publish time), the oldest of the last few."""
+    service = PlannerService(PlannerSettings.from_env("planner", env=router.env))
+    try:
+        assert service.delay_s() == service.config.update_delay_s  # nothing seen yet
+        service.clock.on_clock(Clock(header=new_header("player", 1, 10**9), rate=1.0))
+        now = time.time_ns()
+
+        stamps = iter(range(1, 100))
+
+        def arrive(age_s: float) -> None:
+            msg = swaying_in_front(arm, next(stamps) * 0.1)
+            msg.header.trace = [Hop(service="source", recv_ns=now - int(age_s * 1e9),
+                                    sent_ns=now - int(age_s * 1e9))]
+            service.on_prediction(msg, Delivery("p", b"", "", None, now, 0))
+
+        arrive(0.060)
+        assert service.delay_s() == pytest.approx(2 * (0.060 + 0.015))
+        for _ in range(20):  # fresh data again: the floor
+            arrive(0.010)
+        assert service.delay_s() == service.config.update_delay_s
     finally:
         service.bus.close()

@@ -11,6 +11,7 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
@@ -317,3 +318,35 @@ def test_the_recorder_writes_every_cloud_of_a_small_camera_and_thins_a_big_one()
     assert [i for i in range(10) if fixed.keep(8_085_645, i)] == [0, 3, 6, 9]
     with pytest.raises(ValueError, match="cloud_every"):
         CloudThinner(-1, 20.0)
+
+
+@pytest.mark.parametrize("isolated_bus", ["player"], indirect=True)
+def test_a_looped_recording_plays_on_as_one_stream(isolated_bus: Bus, recording: Path) -> None:
+    """``loops``: each loop follows the last a frame later, every time moved on alike (log
+    time and the header stamps the services read); static transforms keep theirs."""
+    from wavegrasp.player.main import Player
+    from wavegrasp.recording_io.reader import open_for_replay
+    from wavegrasp.recording_io.ros_msgs import decode_points, decode_pose
+
+    player = Player(PlayerSettings(service="player", loops=3), open_for_replay(recording),
+                    bus=isolated_bus)
+    once = list(player.recording.messages())
+    looped = list(player.looped())
+    assert len(looped) == 3 * len(once)
+    times = [m.log_time_ns for m in looped]
+    assert times == sorted(times)
+    frames = [m for m in looped if m.topic == "/trisect/points"]
+    assert len(frames) == 150  # 50 a loop
+    gaps = np.diff([m.log_time_ns for m in frames])
+    # A frame period throughout; where a loop meets the next, at most one more (the ground
+    # truth's last messages come after the last frame, and time never runs back).
+    assert (gaps == 100_000_000).sum() == len(gaps) - 2
+    assert (gaps[[49, 99]] >= 100_000_000).all() and (gaps[[49, 99]] <= 200_000_000).all()
+    for m in frames:
+        assert decode_points(m.cdr).stamp_ns == m.log_time_ns
+        assert decode_points(m.cdr).points.tobytes() == decode_points(
+            once[looped.index(m) % len(once)].cdr).points.tobytes()
+    truth = [m for m in looped if m.topic == "/groundtruth/object"]
+    assert all(decode_pose(m.cdr)[2] == m.log_time_ns for m in truth)
+    tf = [m for m in looped if m.topic == "/tf_static"]
+    assert len({m.cdr for m in tf}) == len({m.cdr for m in once if m.topic == "/tf_static"})

@@ -552,9 +552,9 @@ def test_the_arm_is_driven_only_by_joint_trajectories_and_reports_joint_states(
 def test_the_arm_stops_and_holds_without_the_gates_heartbeat_and_takes_no_stale_path(
         router, arm, T_world_base) -> None:
     """The arm's watchdog (the link to the topside drops): while the gate's heartbeats come
-    the arm follows its trajectory; once they stop for ``watchdog_s`` it holds where it is
-    and refuses new paths; after the next heartbeat it takes fresh ones again, never one
-    that started longer ago than ``freshness_s``."""
+    the arm follows its trajectory; once they stop for ``watchdog_s`` it holds where it is,
+    its attempt ends aborted, and it refuses new paths; after the next heartbeat it takes
+    fresh ones again, never one that started longer ago than ``freshness_s``."""
     import time
 
     from wavegrasp.recording_io.ros_msgs import JOINT_TRAJECTORY, encode_joint_trajectory
@@ -596,6 +596,7 @@ def test_the_arm_stops_and_holds_without_the_gates_heartbeat_and_takes_no_stale_
         send(jaw_path)
         assert wait_until(lambda: sim.drain() >= 0 and len(sim._paths) == 2)
         sim.follow_paths()
+        sim.executor.start(attempt)
         advance(plan.times[0] + 0.5)  # under way
         moving_q = sim.world.arm_q()[0]
         sim.on_tick()
@@ -603,6 +604,9 @@ def test_the_arm_stops_and_holds_without_the_gates_heartbeat_and_takes_no_stale_
         time.sleep(0.4)  # no heartbeat for longer than watchdog_s
         sim.on_tick()
         assert sim.counters["watchdog: stopped, no heartbeat"] == 1
+        assert 300 <= sim.counters["watchdog: the last stop, ms after the last heartbeat"] < 1000
+        # The attempt under way ends there, aborted: its plan assumed an arm that went on.
+        assert sim.counters["aborted"] == 1 and sim.executor.attempt is None
         stopped_at, held = sim.world.time_s, sim.executor.arm_path.at(sim.world.time_s)[0]
         advance(stopped_at + 1.0)  # the arm holds where it was commanded to be
         np.testing.assert_allclose(sim.world.arm_q()[0], held, atol=2e-3)

@@ -105,7 +105,8 @@ class EdgeService(Service):
             cloud = view_points(d.payload, max_points=self.cfg.max_cloud_points).points()
         except ValueError as exc:
             raise BadMessage(f"{d.key}: {exc}") from None
-        if 0 < cloud.stamp_ns - self._last_stamp_ns < 2e9:  # a gap is no camera's period
+        if self._last_stamp_ns and 0 < cloud.stamp_ns - self._last_stamp_ns < 2e9:  # a gap
+            # (or a replay begun again) is no camera's period
             self.period_s += 0.1 * ((cloud.stamp_ns - self._last_stamp_ns) / 1e9 - self.period_s)
         self._last_stamp_ns = cloud.stamp_ns
         region = self.region(cloud)
