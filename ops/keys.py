@@ -45,6 +45,8 @@ LOGINS = {"router": None, "recorder": "recorder", "perception": "perception",
           "predictor": "predictor", "planner": "planner", "gate": "gate", "sim": "arm",
           "player": "player", "edge": "edge", "launcher": "launcher",
           "health-check": "health-check"}
+#: The login a router presents to another (the rules let it pass on what its own admitted).
+ROUTER_LOGIN = "router"
 RULES = Path("ops") / "zenoh" / "acl" / "router.json5"
 VALID_DAYS = 3650
 
@@ -74,9 +76,10 @@ def certificate(name: str, key: ec.EllipticCurvePrivateKey, issuer: x509.Name,
             digital_signature=True, key_cert_sign=True, crl_sign=True, content_commitment=False,
             key_encipherment=False, data_encipherment=False, key_agreement=False,
             encipher_only=False, decipher_only=False), critical=True)
-    else:
-        usage = ExtendedKeyUsageOID.CLIENT_AUTH if client else ExtendedKeyUsageOID.SERVER_AUTH
-        build = build.add_extension(x509.ExtendedKeyUsage([usage]), critical=False)
+    else:  # a router's serves its listeners and is presented on its links to other routers
+        usages = [ExtendedKeyUsageOID.CLIENT_AUTH] if client else [
+            ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+        build = build.add_extension(x509.ExtendedKeyUsage(usages), critical=False)
     if hosts:
         names: list[x509.GeneralName] = []
         for host in hosts:
@@ -97,15 +100,18 @@ def pem_cert(cert: x509.Certificate) -> bytes:
     return cert.public_bytes(serialization.Encoding.PEM)
 
 
-def router_config(rules: str, out: Path) -> str:
+def router_config(rules: str, out: Path, password: str) -> str:
     """The router's config: the access-control rules file ``rules`` (JSON5 text) with this
-    folder's credentials and the router's TLS listener."""
-    tls = {"root_ca_certificate": str(out / "ca.pem"),
-           "listen_certificate": str(out / "router-cert.pem"),
-           "listen_private_key": str(out / "router-key.pem"),
+    folder's credentials, the router's TLS listener, and its login and certificate for a
+    link to another router (the topside's to the vehicle's, across the tether)."""
+    cert, key = str(out / "router-cert.pem"), str(out / "router-key.pem")
+    tls = {"root_ca_certificate": str(out / "ca.pem"), "listen_certificate": cert,
+           "listen_private_key": key, "connect_certificate": cert, "connect_private_key": key,
            "enable_mtls": True, "close_link_on_expiration": True}
+    login = f"user: {json.dumps(ROUTER_LOGIN)}, password: {json.dumps(password)}, "
     text, n = re.subn(r'dictionary_file:\s*"[^"]*"',
-                      f"dictionary_file: {json.dumps(str(out / 'credentials.txt'))}", rules)
+                      f"{login}dictionary_file: {json.dumps(str(out / 'credentials.txt'))}",
+                      rules)
     if n != 1:
         raise ValueError(f"{RULES}: no usrpwd dictionary_file to point at the credentials")
     text, n = re.subn(r"transport:\s*\{", "transport: {\n    link: { tls: "
@@ -142,7 +148,9 @@ def make_keys(out: Path, hosts: list[str]) -> list[str]:
         hosts=list(dict.fromkeys(["localhost", "127.0.0.1", "router", *hosts]))))
     files["router-key.pem"] = pem_key(router_key)
     passwords = {login: secrets.token_urlsafe(24) for login in LOGINS.values() if login}
-    files["credentials.txt"] = "".join(f"{u}:{p}\n" for u, p in passwords.items()).encode()
+    router_password = secrets.token_urlsafe(24)
+    files["credentials.txt"] = "".join(
+        f"{u}:{p}\n" for u, p in {**passwords, ROUTER_LOGIN: router_password}.items()).encode()
     for login in passwords:
         key = new_key()
         files[f"{login}-cert.pem"] = pem_cert(certificate(login, key, ca.subject, ca_key,
@@ -151,7 +159,7 @@ def make_keys(out: Path, hosts: list[str]) -> list[str]:
     for process, login in LOGINS.items():
         if login is None:
             rules = (project_root() / RULES).read_text()
-            files["router.json5"] = router_config(rules, out).encode()
+            files["router.json5"] = router_config(rules, out, router_password).encode()
         else:
             files[f"{process}.json5"] = client_config(login, passwords[login], out).encode()
     for name, data in files.items():

@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from wavegrasp.gate.main import DECISION_KEY
-from wavegrasp.ops.keys import make_keys
+from wavegrasp.ops.keys import LOGINS, make_keys
 from wavegrasp.ops.launcher import free_port
 from wavegrasp.perception.main import OBJECT_KEY
 from wavegrasp.planner.main import PLAN_KEY
@@ -229,7 +229,7 @@ def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
     lines = (keys / "credentials.txt").read_text().splitlines()
     passwords = dict(line.split(":", 1) for line in lines)
     assert set(passwords) == {"recorder", "perception", "predictor", "planner", "gate", "arm",
-                              "player", "launcher", "health-check"}
+                              "player", "edge", "launcher", "health-check", "router"}
     assert len(set(passwords.values())) == len(passwords)
     assert all(len(p) >= 32 for p in passwords.values())
     assert {oct(p.stat().st_mode & 0o777) for p in keys.iterdir()} == {"0o640"}
@@ -258,9 +258,50 @@ def test_a_router_with_keys_makes_them_first_and_runs_on_them(tmp_path: Path) ->
         assert wait_until(lambda: (keys / "gate.json5").exists(), timeout=15, period=0.1)
         s = settings("gate", endpoint, keys, connect_timeout_s=15)
         open_session(s).close()
-        assert len((keys / "credentials.txt").read_text().splitlines()) == 9
+        # Every login of LOGINS, and the router's own for its links to other routers.
+        assert len((keys / "credentials.txt").read_text().splitlines()) == len(
+            [login for login in LOGINS.values() if login]) + 1
         with pytest.raises(ConnectionError, match="cannot open zenoh session"):
             open_session(Settings(service="gate", zenoh_connect=[endpoint],
                                   connect_timeout_s=0.3)).close()
     finally:
         stop(proc)
+
+
+def test_across_a_tether_only_the_gate_commands_the_arm_and_only_the_arm_reports(
+        keys: Path) -> None:
+    """Two routers, the vehicle's and the topside's, each with this installation's config:
+    the topside's links to the vehicle's over mutual TLS with its own login and passes on
+    what its own rules let in. The gate's commands reach the arm's side, the arm's state the
+    topside; a command forged topside, or a decision forged on the vehicle, goes nowhere."""
+    port, tls_port, top_port = free_port(), free_port(), free_port()
+    routers = [spawn(wavegrasp_cmd("router", "--listen", f"tcp/127.0.0.1:{port},"
+                                   f"tls/127.0.0.1:{tls_port}", "--config",
+                                   str(keys / "router.json5")), {})]
+    routers.append(spawn(wavegrasp_cmd("router", "--listen", f"tcp/127.0.0.1:{top_port}",
+                                       "--config", str(keys / "router.json5")),
+                         {"WAVEGRASP_ROUTER_CONNECT": f"tls/localhost:{tls_port}"}))
+    vehicle, topside = f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{top_port}"
+    buses: list[Bus] = []
+    try:
+        def bus(name: str, endpoint: str) -> Bus:
+            buses.append(Bus(settings(name, endpoint, keys, connect_timeout_s=15)))
+            return buses[-1]
+
+        gate, planner, recorder = (bus(n, topside) for n in ("gate", "planner", "recorder"))
+        sim, player = bus("sim", vehicle), bus("player", vehicle)
+        on_vehicle, on_topside = Watcher(sim.session), Watcher(recorder.session)
+        assert delivered(gate, ARM.arm_trajectory_key, on_vehicle, timeout=15)
+        assert delivered(sim, ARM.joint_states_key, on_topside)
+        planner.publish_bytes(ARM.arm_trajectory_key, b"forged by planner")
+        player.publish_bytes(DECISION_KEY, b"forged by player")
+        assert delivered(planner, PLAN_KEY, on_vehicle)  # after the forgery, in order
+        assert delivered(player, "trisect/points", on_topside)
+        forged = [p for w in (on_vehicle, on_topside) for p in w.payloads()
+                  if p.startswith(b"forged")]
+        assert forged == []
+    finally:
+        for b in buses:
+            b.close()
+        for proc in routers:
+            stop(proc)

@@ -15,6 +15,7 @@ from conftest import ROOT
 
 SPEC = ROOT.parent / "shared" / "compose-spec" / "compose-spec.json"
 COMPOSE = ROOT / "docker-compose.yml"
+TWO_HOSTS = ROOT / "docker-compose.two-hosts.yml"
 
 
 def test_compose_file_follows_the_compose_specification() -> None:
@@ -23,6 +24,31 @@ def test_compose_file_follows_the_compose_specification() -> None:
     validator = jsonschema.Draft7Validator(json.loads(SPEC.read_text()))
     validator.validate(yaml.safe_load(COMPOSE.read_text()))
     validator.validate(yaml.safe_load((ROOT / "ops" / "compose-rt-cgroup-v1.yml").read_text()))
+    validator.validate(yaml.safe_load(TWO_HOSTS.read_text()))
+
+
+def test_the_two_host_file_splits_the_services_as_the_tether_run_does() -> None:
+    """Each host's profile runs its side (as ``wavegrasp up --tether`` places them), every
+    service logs in, the vehicle's router holds the camera's clouds off the tether and the
+    topside's links to it over TLS; the topside reads the edge stage's clouds."""
+    from wavegrasp.ops.tether import VEHICLE
+
+    env = {"WAVEGRASP_TETHER_INTERFACE": "eth1", "WAVEGRASP_VEHICLE_HOST": "10.0.0.2"}
+    vehicle = load_compose(TWO_HOSTS, env, frozenset({"vehicle"}))
+    topside = load_compose(TWO_HOSTS, env, frozenset({"topside"}))
+    assert set(vehicle) == {"router-vehicle", *VEHICLE}
+    assert set(topside) == {"router-topside", "perception", "predictor", "planner", "gate",
+                            "recorder"}
+    router = vehicle["router-vehicle"].environment
+    assert router["WAVEGRASP_HOLD_KEYS"] == "trisect/points"
+    assert router["WAVEGRASP_HOLD_INTERFACES"] == "eth1"
+    assert "tls/0.0.0.0:7448" in router["ZENOH_LISTEN"]
+    assert topside["router-topside"].environment["WAVEGRASP_ROUTER_CONNECT"] == "tls/10.0.0.2:7448"
+    for services in (vehicle, topside):
+        for name, svc in services.items():
+            assert svc.environment["ZENOH_CONFIG"].startswith("/keys/"), name
+            if not name.startswith("router"):
+                assert svc.environment["WAVEGRASP_POINTS_KEY"] == "wavegrasp/edge/points"
 
 
 def test_every_service_runs_a_wavegrasp_command_from_one_image() -> None:

@@ -38,6 +38,10 @@ def main(argv: list[str] | None = None) -> int:
                                  zenoh_listen=split_endpoints(args.listen) if args.listen else None)
     if not settings.zenoh_listen:
         settings.zenoh_listen = ["tcp/127.0.0.1:7447"]
+    if settings.hold_keys and not settings.hold_interfaces:
+        print("wavegrasp router: WAVEGRASP_HOLD_KEYS needs WAVEGRASP_HOLD_INTERFACES (the "
+              "interfaces to hold them off: the tether's)", file=sys.stderr)
+        return 2
     setup_logging(settings.log_level)
     if args.keys is not None and not (args.keys / "credentials.txt").exists():
         try:
