@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
+from wavegrasp.arm import ArmModel
 from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
@@ -34,7 +35,11 @@ from wavegrasp.ops.tether import CLOUD_SHARE, VEHICLE, Tether
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
 from wavegrasp.recorder.summary import RunSummary
-from wavegrasp.recording_io.reader import RecordingError, open_for_replay
+from wavegrasp.recording_io.reader import (
+    RecordingError,
+    check_camera_transform,
+    open_for_replay,
+)
 from wavegrasp.runtime.bus import Bus, Delivery, remove_orphaned_segments
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
@@ -310,7 +315,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("recording", nargs="?", type=Path,
                         help="MCAP, ROS 1 .bag or ROS 2 bag folder (default: the sample)")
     parser.add_argument("--pace", choices=["realtime", "fast", "lockstep"], default="realtime")
-    parser.add_argument("--predictor", choices=MODELS,
+    parser.add_argument("--predictor",
                         help=f"motion model for the predictor service (default {DEFAULT_MODEL})")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<date-time>)")
     parser.add_argument("--compose", type=Path, help="compose file (default: docker-compose.yml)")
@@ -358,9 +363,12 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         raise ValueError(f"{out} already holds run.mcap: choose another --out")
     recording = args.recording or default_recording()
     try:  # before anything starts: a bad file gets one line, not a pipeline that fails
-        problem = open_for_replay(recording).problem
+        opened = open_for_replay(recording)
+        check_camera_transform(opened)
+        problem = opened.problem
     except RecordingError as exc:
         raise ValueError(str(exc)) from None
+    check_choices(args, environ)
     if problem:  # e.g. cut short: the player replays what is readable
         print(f"wavegrasp up: warning: {recording}: {problem}", file=sys.stderr)
     env = {
@@ -407,6 +415,33 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
     out.mkdir(parents=True, exist_ok=True)
     return Run(args, Launcher(services, env, args.fork, log, interrupted), env, out, recording,
                tether=tether)
+
+
+def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
+    """Raise ValueError naming the first of the run's choices that cannot work: a predictor
+    that does not exist, an arm description that does not load, a port taken."""
+    if args.predictor and args.predictor not in MODELS:
+        raise ValueError(f"--predictor {args.predictor}: no such predictor (there are "
+                         f"{', '.join(MODELS)})")
+    urdf = environ.get("WAVEGRASP_ARM_URDF")
+    if urdf:
+        try:
+            ArmModel.load(urdf)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"WAVEGRASP_ARM_URDF: {exc}") from None
+    ports = {"--viewer-port": args.viewer_port} if args.viewer else {}
+    if environ.get("WAVEGRASP_ROUTER_PORT"):
+        text = environ["WAVEGRASP_ROUTER_PORT"]
+        if not text.isdigit() or not 0 < int(text) < 65536:
+            raise ValueError(f"WAVEGRASP_ROUTER_PORT {text!r}: not a port number")
+        ports["WAVEGRASP_ROUTER_PORT"] = int(text)
+    for what, port in ports.items():
+        with socket.socket() as s:
+            try:
+                s.bind((environ.get("WAVEGRASP_ROUTER_BIND", "127.0.0.1"), port))
+            except OSError as exc:
+                raise ValueError(f"{what} {port}: the port is taken ({exc.strerror}): "
+                                 "choose another") from None
 
 
 def across_tether(services: dict[str, ComposeService], tether: Tether, port: int) -> None:

@@ -188,3 +188,44 @@ def test_truncated_recording_names_the_file(recording: Path, tmp_path: Path) -> 
     assert 0 < len(payloads["/trisect/points"]) < 50
     assert payloads["/trisect/points"] == source_frames(recording)[: len(
         payloads["/trisect/points"])]
+
+
+def test_mistakes_get_one_line_and_exit_2(recording: Path, tmp_path: Path) -> None:
+    """What a user gets wrong is named in one line before anything starts: a predictor that
+    does not exist, an arm description that does not load, a port taken, a recording whose
+    camera has no transform."""
+    import socket
+
+    import numpy as np
+
+    from wavegrasp.recording_io.writer import RecordingWriter
+
+    no_tf = tmp_path / "no_tf.mcap"
+    with RecordingWriter(no_tf, {}) as w:
+        for i in range(30):
+            w.write_points(10**9 + i * 10**8, np.random.default_rng(i).random((100, 3)))
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    port = taken.getsockname()[1]
+    cases = [
+        ([str(recording), "--predictor", "kalman"], {},
+         "--predictor kalman: no such predictor (there are blend, harmonic, linear)"),
+        ([str(recording)], {"WAVEGRASP_ARM_URDF": str(tmp_path / "arm.urdf")},
+         f"WAVEGRASP_ARM_URDF: arm URDF '{tmp_path / 'arm.urdf'}' does not exist"),
+        ([str(recording)], {"WAVEGRASP_ROUTER_PORT": str(port)},
+         f"WAVEGRASP_ROUTER_PORT {port}: the port is taken"),
+        ([str(no_tf)], {}, f"{no_tf}: no /tf_static transform from the camera's frame "
+         "'trisect_optical' to 'world'"),
+    ]
+    try:
+        for args, env, line in cases:
+            out = tmp_path / f"run-{len(line)}"
+            result = subprocess.run(wavegrasp_cmd("up", *args, "--out", str(out)),
+                                    capture_output=True, text=True, timeout=60,
+                                    env={**os.environ, **env})
+            assert result.returncode == 2, (args, result.stdout[-2000:], result.stderr)
+            lines = result.stderr.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith(f"wavegrasp up: {line}"), lines
+            assert not (out / "summary.json").exists()  # nothing ran
+    finally:
+        taken.close()

@@ -28,6 +28,9 @@ __all__ = ["CONTRACT_TOPICS", "RecordedMessage", "Recording", "RecordingError",
            "TruncatedRecording", "check_path", "open_for_replay", "open_recording", "read_mcap"]
 
 CAMERA = ("/trisect/points", "sensor_msgs/msg/PointCloud2")  # what the pipeline runs on
+#: How long after the first camera frame its static transform may come (a recorder that
+#: started the camera's driver first).
+TRANSFORM_WAIT_NS = 2_000_000_000
 
 
 def open_recording(
@@ -86,3 +89,34 @@ def open_for_replay(path: str | Path) -> Recording:
     recording = open_recording(path)
     recording.require(*CAMERA)
     return recording
+
+
+def check_camera_transform(recording: Recording) -> None:
+    """Raise RecordingError naming the file and the camera's frame unless ``/tf_static``
+    places that frame (the first cloud's) in ``world`` by ``TRANSFORM_WAIT_NS`` after the first
+    cloud: perception places every point with it. Reads only the recording's start."""
+    from .ros_msgs import StaticTransforms, decode_tf, view_points
+
+    tf, frame, first_ns = StaticTransforms(), None, 0
+    try:
+        for msg in recording.messages():
+            if msg.topic == "/tf_static":
+                tf.update(decode_tf(msg.cdr))
+            elif msg.topic == CAMERA[0] and frame is None:
+                frame, first_ns = view_points(msg.cdr).frame_id, msg.log_time_ns
+            if frame is not None:
+                try:
+                    tf.lookup("world", frame)
+                    return
+                except ValueError:
+                    if msg.log_time_ns - first_ns > TRANSFORM_WAIT_NS:
+                        break
+    except TruncatedRecording:  # cut before it could tell: the replay warns of the cut
+        return
+    except ValueError as exc:  # a message that does not decode
+        raise RecordingError(f"{recording.path}: {exc}") from None
+    if frame is not None:
+        raise RecordingError(
+            f"{recording.path}: no /tf_static transform from the camera's frame {frame!r} to "
+            "'world' (perception places every point with it): record the camera's static "
+            "transforms too")
