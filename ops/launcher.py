@@ -31,6 +31,7 @@ from wavegrasp.arm import ArmModel
 from wavegrasp.ops import forked
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
+from wavegrasp.ops.status import Progress
 from wavegrasp.ops.tether import CLOUD_SHARE, VEHICLE, Tether
 from wavegrasp.ops.viewer import viewer_url
 from wavegrasp.predictor import DEFAULT_MODEL, MODELS
@@ -42,7 +43,14 @@ from wavegrasp.recording_io.reader import (
 )
 from wavegrasp.runtime.bus import Bus, Delivery, remove_orphaned_segments
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.schemas import GraspOutcome, PlayerStatus, ServiceStats
+from wavegrasp.schemas import (
+    CLOCK_KEY,
+    Clock,
+    GateDecision,
+    GraspOutcome,
+    PlayerStatus,
+    ServiceStats,
+)
 
 STOP_TIMEOUT_S = 10.0
 #: The camera's clouds, and the edge stage's that cross a tether instead.
@@ -53,6 +61,10 @@ EDGE_POINTS_KEY = "wavegrasp/edge/points"
 RESTART_DELAY_S = 0.1
 RESTART_DELAY_MAX_S = 10.0
 RESTART_STABLE_S = 10.0
+#: The status line: redrawn this often on a terminal; elsewhere a plain line this often.
+STATUS_PERIOD_S = 0.5
+PLAIN_STATUS_PERIOD_S = 10.0
+CLEAR = "\r\x1b[K"  # back to the line's start and clear it
 
 
 @dataclass
@@ -101,10 +113,42 @@ class Launcher:
         self._up_since: dict[str, float] = {}
         self._delay: dict[str, float] = {}
         self._due: dict[str, float] = {}  # restarts waiting for their delay
+        self.progress = Progress()
+        #: A terminal gets a status line kept under the services' lines.
+        self.live = self.stream.isatty()
+        self._status = ""  # the status line shown now (a terminal's)
+        self._status_at = 0.0
+        self._write = threading.Lock()  # the pumps' threads and the main one write
 
     def log(self, text: str, name: str = "up") -> None:
-        self.stream.write(f"{name:>10} | {text}\n")
-        self.stream.flush()
+        with self._write:
+            self.stream.write(f"{CLEAR if self._status else ''}{name:>10} | {text}\n"
+                              f"{self._status}")
+            self.stream.flush()
+
+    def show_status(self) -> None:
+        """The status line: kept at the bottom of a terminal (redrawn every
+        STATUS_PERIOD_S), elsewhere a plain line every PLAIN_STATUS_PERIOD_S."""
+        now = time.monotonic()
+        period = STATUS_PERIOD_S if self.live else PLAIN_STATUS_PERIOD_S
+        if now - self._status_at < period:
+            return
+        self._status_at = now
+        line = self.progress.line(self.summary)
+        if not self.live:
+            self.log(line, "status")
+            return
+        with self._write:
+            self._status = line
+            self.stream.write(f"{CLEAR}{line}")
+            self.stream.flush()
+
+    def clear_status(self) -> None:
+        with self._write:
+            if self._status:
+                self.stream.write(CLEAR)
+                self.stream.flush()
+            self._status = ""
 
     def _pump(self, name: str, stream) -> None:
         for raw in iter(stream.readline, b""):
@@ -134,6 +178,9 @@ class Launcher:
         self.bus.subscribe("wavegrasp/*/stats", self.on_stats, ServiceStats)
         self.bus.subscribe("wavegrasp/player/status", self.on_status, PlayerStatus)
         self.bus.subscribe("wavegrasp/sim/outcome", self.on_outcome, GraspOutcome)
+        self.bus.subscribe(CLOCK_KEY, lambda msg, _d: self.progress.on_clock(msg), Clock)
+        self.bus.subscribe("wavegrasp/gate/decision",
+                           lambda msg, _d: self.progress.on_decision(msg), GateDecision)
 
     def on_outcome(self, msg: GraspOutcome, _d: Delivery) -> None:
         self.summary.on_outcome(msg)
@@ -235,6 +282,7 @@ class Launcher:
         enders = [n for n, s in self.services.items() if s.labels.get("wavegrasp.ends-run")]
         while not self.interrupted.is_set():
             self.pump_bus()
+            self.show_status()
             if not self.handle_failures():
                 return "crashed"
             if any(self.procs[n].poll() == 0 for n in enders):
@@ -413,8 +461,9 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
     if tether is not None:
         across_tether(services, tether, free_port())
     out.mkdir(parents=True, exist_ok=True)
-    return Run(args, Launcher(services, env, args.fork, log, interrupted), env, out, recording,
-               tether=tether)
+    launcher = Launcher(services, env, args.fork, log, interrupted)
+    launcher.progress.start_ns, launcher.progress.end_ns = opened.start_ns, opened.end_ns
+    return Run(args, launcher, env, out, recording, tether=tether)
 
 
 def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
@@ -493,6 +542,7 @@ def execute(run: Run) -> str:
                          f"{viewer_url(args.viewer_port, grpc_port)} until Ctrl-C")
             launcher.interrupted.wait()
     finally:
+        launcher.clear_status()
         run.crashed = launcher.crashed()
         launcher.stop_all()
         run.crashed += launcher.killed
@@ -526,6 +576,8 @@ def summarize(run: Run, why: str) -> dict:
                  for r in rs]
         launcher.log(f"restarted {name} {len(rs)} time(s); back after {', '.join(backs)}")
     grasps = collected.outcome_kinds() or "none"
+    restarts = {n: len(rs) for n, rs in launcher.restarts.items() if rs}
+    launcher.stream.write(launcher.progress.table(collected, restarts, run.out) + "\n")
     launcher.log(f"{why}: {collected.player_status.get('frames', 0)} frames, "
                  f"{collected.bad_total()} bad messages; grasps {grasps};"
                  f" exit codes {codes}; wrote {run.out / 'summary.json'}")

@@ -30,6 +30,8 @@ def test_a_run_across_a_tether_grasps_and_the_clouds_fit_the_link(tmp_path: Path
     assert summary["exit_codes"]["vehicle-router"] == 0 and summary["exit_codes"]["edge"] == 0
     assert summary["outcomes"] and summary["outcomes"][0]["success"], summary["outcomes"]
     assert not summary["bad_messages"]
+    row = next(line for line in result.stdout.splitlines() if line.startswith("      1  "))
+    assert "success" in row and "mm (ε 10)" in row, row  # the run's table: the attempt
     # The recorder subscribes to everything, yet the camera's full clouds stayed on the
     # vehicle: the edge stage's crossed instead, one for every camera frame, with the frame's
     # own sequence number and stamp, and a third of its points or fewer.

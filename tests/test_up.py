@@ -44,6 +44,9 @@ def check_run(recording: Path, out: Path, result: subprocess.CompletedProcess) -
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "finished" and not summary["crashed"]
     assert summary["player"]["frames"] == 50
+    # It ends with its table and where to look next (not a terminal: plain status lines).
+    assert f"see it: rerun {out / 'run.rrd'}" in result.stdout
+    assert "status | " in result.stdout
     return summary
 
 
