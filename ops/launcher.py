@@ -372,6 +372,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "fed live; it stays up after the run until Ctrl-C")
     parser.add_argument("--viewer-port", type=int, default=9090,
                         help="HTTP port of the web viewer (default 9090)")
+    parser.add_argument("--foxglove", action="store_true",
+                        help="also serve the bus live for Foxglove (the compose file's "
+                        "foxglove profile) on 127.0.0.1:--foxglove-port")
+    parser.add_argument("--foxglove-port", type=int, default=8765,
+                        help="its WebSocket port (default 8765)")
     parser.add_argument("--tether", type=float, metavar="MBIT",
                         help="the vehicle's services (player, sim) and a router of their own "
                         "in a network namespace, joined to the topside's by a link of MBIT "
@@ -456,6 +461,10 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         env["WAVEGRASP_POINTS_KEY"] = EDGE_POINTS_KEY
         env.setdefault("WAVEGRASP_EDGE_MBIT", f"{CLOUD_SHARE * args.tether:g}")
     profiles = {"viewer"} if args.viewer else set()
+    if args.foxglove:
+        profiles.add("foxglove")
+        env |= {"WAVEGRASP_FOXGLOVE_HOST": "127.0.0.1",
+                "WAVEGRASP_FOXGLOVE_PORT": str(args.foxglove_port)}
     services = load_compose(compose_path, env, frozenset(
         profiles | {"edge"} if tether is not None else profiles))
     if tether is not None:
@@ -479,6 +488,8 @@ def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
         except (OSError, ValueError) as exc:
             raise ValueError(f"WAVEGRASP_ARM_URDF: {exc}") from None
     ports = {"--viewer-port": args.viewer_port} if args.viewer else {}
+    if args.foxglove:
+        ports["--foxglove-port"] = args.foxglove_port
     if environ.get("WAVEGRASP_ROUTER_PORT"):
         text = environ["WAVEGRASP_ROUTER_PORT"]
         if not text.isdigit() or not 0 < int(text) < 65536:

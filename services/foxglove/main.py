@@ -1,0 +1,102 @@
+"""``wavegrasp foxglove``: the bus, live, for Foxglove (the app or app.foxglove.dev).
+
+Subscribes to ``serve_keys`` (everything by default) and serves each CDR key as a Foxglove channel
+(topic ``/`` + key, ``cdr`` messages, the type's ``ros2msg`` schema, as run.mcap has it)
+over the Foxglove WebSocket protocol (foxglove-sdk) on ``foxglove_host``:``foxglove_port``
+(127.0.0.1:8765: open ``ws://localhost:8765`` in Foxglove). A channel appears with its
+key's first message; the camera's clouds, the perception's points, the scene's markers and
+``/tf``, the arm's ``joint_states`` and every message of ours are drawn or plotted by
+Foxglove's panels (``ops/foxglove/layout.json``). Messages go out with their log time (the
+recording's clock), so Foxglove's timeline follows the replay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+import foxglove
+from pydantic import Field
+
+from wavegrasp.recording_io.typestore import ros2_msgdef
+from wavegrasp.runtime.bus import CDR, BadMessage, Bus, Delivery
+from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import CdrAttachment
+from wavegrasp.schemas import ROS_KEYS
+
+log = logging.getLogger("wavegrasp.foxglove")
+
+
+class FoxgloveSettings(Settings):
+    foxglove_host: str = Field("127.0.0.1", description="where the WebSocket server listens "
+                               "(0.0.0.0: every interface; keep it on the loopback unless the "
+                               "link is trusted: the protocol has no login)")
+    foxglove_port: int = Field(8765, ge=0, le=65535, description="its port (0: any free one)")
+    serve_keys: list[str] = Field(default_factory=lambda: ["**"], description="key expressions "
+                            "to serve")
+
+
+class FoxgloveBridge(Service):
+    subscribes_clock = False  # its own subscription brings the ticks
+
+    def __init__(self, settings: FoxgloveSettings, bus: Bus | None = None) -> None:
+        super().__init__(settings, bus)
+        self.server = foxglove.start_server(name="wavegrasp", host=settings.foxglove_host,
+                                            port=settings.foxglove_port)
+        self.channels: dict[str, foxglove.Channel] = {}
+        for expr in settings.serve_keys:
+            self.bus.subscribe(expr, self.on_message)
+        log.info("serving the bus for Foxglove on ws://%s:%d", settings.foxglove_host,
+                 self.server.port)
+
+    def channel(self, key: str, msgtype: str) -> foxglove.Channel:
+        """The key's channel, made with its first message (its type's schema)."""
+        channel = self.channels.get(key)
+        if channel is None:
+            try:
+                definition = ros2_msgdef(msgtype)
+            except Exception as exc:  # rosbags raises several types for an unknown type
+                raise BadMessage(f"{key}: no ROS 2 definition of {msgtype!r}: {exc}") from None
+            channel = foxglove.Channel(f"/{key}", message_encoding="cdr", schema=foxglove.Schema(
+                name=msgtype, encoding="ros2msg", data=definition.encode()))
+            self.channels[key] = channel
+            self.counters["channels"] = len(self.channels)
+        return channel
+
+    def on_message(self, d: Delivery) -> None:
+        if not d.encoding.startswith(CDR):
+            self.counters["not CDR: not served"] += 1
+            return
+        msgtype = d.schema or ROS_KEYS.get(d.key)
+        if msgtype is None:
+            raise BadMessage(f"{d.key}: CDR without a message type in its encoding")
+        try:
+            att = CdrAttachment.decode(d.attachment)
+        except ValueError as exc:
+            raise BadMessage(f"{d.key}: {exc}") from None
+        log_time = att.log_time_ns if att is not None and att.log_time_ns else (
+            self.clock.now_ns() or None)
+        self.channel(d.key, msgtype).log(d.payload, log_time=log_time)
+        self.counters["served"] += 1
+
+    def on_stop(self) -> None:
+        self.server.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    argparse.ArgumentParser(prog="wavegrasp foxglove", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
+    try:
+        settings = FoxgloveSettings.from_env("foxglove")
+    except ValueError as exc:
+        print(f"wavegrasp foxglove: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(settings.log_level)
+    try:
+        return FoxgloveBridge(settings).run()
+    except RuntimeError as exc:  # foxglove-sdk's, e.g. the port taken
+        print(f"wavegrasp foxglove: cannot listen on {settings.foxglove_host}:"
+              f"{settings.foxglove_port}: {exc}", file=sys.stderr)
+        return 2
