@@ -43,7 +43,8 @@ from wavegrasp.ops.sample import project_root
 #: Every process that opens a session, and the login it uses (the sim is the arm).
 LOGINS = {"router": None, "recorder": "recorder", "perception": "perception",
           "predictor": "predictor", "planner": "planner", "gate": "gate", "sim": "arm",
-          "player": "player", "edge": "edge", "foxglove": "foxglove", "launcher": "launcher",
+          "player": "player", "edge": "edge", "foxglove": "foxglove",
+          "scene": "scene", "launcher": "launcher",
           "health-check": "health-check"}
 #: The login a router presents to another (the rules let it pass on what its own admitted).
 ROUTER_LOGIN = "router"

@@ -372,9 +372,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "fed live; it stays up after the run until Ctrl-C")
     parser.add_argument("--viewer-port", type=int, default=9090,
                         help="HTTP port of the web viewer (default 9090)")
+    parser.add_argument("--scene", action="store_true",
+                        help="also draw the grasp for Foxglove and rviz2 (/tf, "
+                        "robot_description, markers; the compose file's scene profile), "
+                        "recorded in run.mcap")
     parser.add_argument("--foxglove", action="store_true",
                         help="also serve the bus live for Foxglove (the compose file's "
-                        "foxglove profile) on 127.0.0.1:--foxglove-port")
+                        "foxglove profile, with the scene) on 127.0.0.1:--foxglove-port")
     parser.add_argument("--foxglove-port", type=int, default=8765,
                         help="its WebSocket port (default 8765)")
     parser.add_argument("--tether", type=float, metavar="MBIT",
@@ -461,6 +465,8 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         env["WAVEGRASP_POINTS_KEY"] = EDGE_POINTS_KEY
         env.setdefault("WAVEGRASP_EDGE_MBIT", f"{CLOUD_SHARE * args.tether:g}")
     profiles = {"viewer"} if args.viewer else set()
+    if args.scene:
+        profiles.add("scene")
     if args.foxglove:
         profiles.add("foxglove")
         env |= {"WAVEGRASP_FOXGLOVE_HOST": "127.0.0.1",

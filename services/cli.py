@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("wavegrasp.sim.main", "PyBullet executes approved plans and judges each grasp"),
     "foxglove": ("wavegrasp.foxglove.main", "the bus live for Foxglove (WebSocket, "
                  "127.0.0.1:8765)"),
+    "scene": ("wavegrasp.scene.main", "the grasp as Foxglove and rviz2 draw it: /tf, "
+              "robot_description, markers"),
     "eval": ("wavegrasp.ops.experiment", "the paper's experiment: trials per predictor and "
              "configuration"),
     "viewer": ("wavegrasp.ops.viewer", "rerun's web viewer, fed live by the recorder"),
@@ -42,8 +44,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 
 #: The commands that run a service loop (:class:`wavegrasp.runtime.service.Service`).
-SERVICES = {"player", "edge", "foxglove", "recorder", "perception", "predictor", "planner",
-            "gate", "sim"}
+SERVICES = {"player", "edge", "foxglove", "scene", "recorder", "perception", "predictor",
+            "planner", "gate", "sim"}
 
 
 #: One thread per process for the numeric libraries unless the user says otherwise. A pipeline

@@ -229,7 +229,8 @@ def test_keys_are_made_per_installation_and_none_is_committed(keys: Path,
     lines = (keys / "credentials.txt").read_text().splitlines()
     passwords = dict(line.split(":", 1) for line in lines)
     assert set(passwords) == {"recorder", "perception", "predictor", "planner", "gate", "arm",
-                              "player", "edge", "launcher", "health-check", "router"}
+                              "player", "edge", "foxglove", "scene", "launcher",
+                              "health-check", "router"}
     assert len(set(passwords.values())) == len(passwords)
     assert all(len(p) >= 32 for p in passwords.values())
     assert {oct(p.stat().st_mode & 0o777) for p in keys.iterdir()} == {"0o640"}

@@ -1,0 +1,1 @@
+"""The scene as Foxglove and rviz2 draw it: /tf, robot_description and markers."""
