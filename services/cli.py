@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import signal
 import sys
 
@@ -88,5 +89,27 @@ def main(argv: list[str] | None = None) -> int:
         # mask): the service loop then takes them with sigtimedwait, whichever thread the
         # kernel would have picked and whatever handler a library installed.
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    module = importlib.import_module(COMMANDS[name][0])
+    try:
+        module = importlib.import_module(COMMANDS[name][0])
+    except (ImportError, OSError) as exc:
+        missing = system_library(exc)
+        if missing is None:
+            raise
+        print(f"wavegrasp {name}: the system library {missing} is missing (open3d and "
+              f"PyBullet need it): install it, e.g. `sudo apt-get install "
+              f"{APT_PACKAGES.get(missing.split('.so')[0], '<its package>')}`, or run "
+              "`bash ops/setup.sh`", file=sys.stderr)
+        return 2
     return int(module.main(rest) or 0)
+
+
+#: Debian's packages of the system libraries our wheels load (open3d's above all).
+APT_PACKAGES = {"libusb-1.0": "libusb-1.0-0", "libgomp": "libgomp1", "libGL": "libgl1",
+                "libEGL": "libegl1", "libX11": "libx11-6", "libstdc++": "libstdc++6"}
+
+
+def system_library(exc: BaseException) -> str | None:
+    """The shared library an import could not load (``libusb-1.0.so.0``), if that is what
+    ``exc`` says."""
+    match = re.search(r"(lib[\w.+-]+\.so[\w.]*): cannot open shared object file", str(exc))
+    return match.group(1) if match else None

@@ -219,6 +219,7 @@ def test_mistakes_get_one_line_and_exit_2(recording: Path, tmp_path: Path) -> No
          f"WAVEGRASP_ROUTER_PORT {port}: the port is taken"),
         ([str(no_tf)], {}, f"{no_tf}: no /tf_static transform from the camera's frame "
          "'trisect_optical' to 'world'"),
+        ([str(tmp_path / "nowhere.mcap")], {}, f"{tmp_path / 'nowhere.mcap'}: no such file"),
     ]
     try:
         for args, env, line in cases:
@@ -232,3 +233,14 @@ def test_mistakes_get_one_line_and_exit_2(recording: Path, tmp_path: Path) -> No
             assert not (out / "summary.json").exists()  # nothing ran
     finally:
         taken.close()
+
+
+def test_a_missing_system_library_is_named_with_its_package() -> None:
+    """open3d's wheel loads libusb (and others) from the system: an import that cannot is
+    named in one line with the Debian package that has it."""
+    from wavegrasp.cli import system_library
+
+    error = OSError("libusb-1.0.so.0: cannot open shared object file: No such file or "
+                    "directory")
+    assert system_library(error) == "libusb-1.0.so.0"
+    assert system_library(ImportError("No module named 'open3d'")) is None
