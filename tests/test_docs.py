@@ -31,3 +31,12 @@ def test_the_readme_is_a_front_page_whose_links_lead_somewhere() -> None:
     for target in re.findall(r"\]\(([^)#\s]+)", text):
         if not target.startswith("http"):
             assert (ROOT / target).exists(), target
+
+
+def test_the_pages_made_from_the_code_are_what_the_code_says() -> None:
+    """docs/configuration.md and docs/message-types.md: every setting and message field."""
+    result = subprocess.run([sys.executable, "-m", "wavegrasp.ops.docs", "--check"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    text = (ROOT / "docs" / "configuration.md").read_text()
+    assert "`WAVEGRASP_BUDGET_MBIT`" in text and "`WAVEGRASP_EPSILON_M`" in text
