@@ -82,12 +82,14 @@ if TYPE_CHECKING:
     from wavegrasp.recorder.rerun_log import RerunLog
 
 log = logging.getLogger("wavegrasp.recorder")
+#: The camera's clouds (the default of ``points_key``).
+POINTS_KEY = "trisect/points"
 OBJECT_POINTS_KEY = "wavegrasp/perception/points"
 TRUTH_KEY = "groundtruth/object"
 
 
 class RecorderSettings(Settings):
-    points_key: str = Field("trisect/points", description="the camera's clouds, whose frames "
+    points_key: str = Field(POINTS_KEY, description="the camera's clouds, whose frames "
                             "it acknowledges (across a tether, the edge's)")
     out: Path = Path("out")
     flush_period_s: float = 0.5
