@@ -478,6 +478,11 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
     out.mkdir(parents=True, exist_ok=True)
     launcher = Launcher(services, env, args.fork, log, interrupted)
     launcher.progress.start_ns, launcher.progress.end_ns = opened.start_ns, opened.end_ns
+    loops = env.get("WAVEGRASP_LOOPS", "1")
+    if opened.start_ns and opened.end_ns and loops.isdigit() and int(loops) > 1:
+        # The player's loops follow one another: about as long again each.
+        launcher.progress.end_ns = opened.start_ns + int(loops) * (opened.end_ns
+                                                                  - opened.start_ns)
     return Run(args, launcher, env, out, recording, tether=tether)
 
 

@@ -2,7 +2,7 @@
 
 Runs ``wavegrasp up --pace realtime`` on RECORDING (default: the sample) played over and over
 (the player's ``loops``: each loop's times follow on from the last, one stream) for at least
-M minutes, ``--tether MBIT`` as ``wavegrasp up``'s. Every ``--sample-s`` seconds it reads the
+M minutes, ``--tether MBIT`` as ``wavegrasp up``'s; run.mcap only, unless ``--rrd``. Every ``--sample-s`` seconds it reads the
 resident memory of each service (with the processes it started: perception's mesh worker).
 At the end it compares each service's memory over the run's last tenth with that over its
 second tenth (after the start's caches have filled): ``growth``, per cent. It counts the
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import statistics
 import sys
@@ -118,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--flat", type=float, default=10.0,
                    help="the most a service's memory may grow, per cent (default 10)")
     p.add_argument("--out", type=Path, help="run folder (default: runs/soak-<date-time>)")
+    p.add_argument("--rrd", action="store_true",
+                   help="write run.rrd too (off by default: rerun's recording stream keeps "
+                   "memory for all it wrote, rerun-io/rerun#12623; the recorder closes it "
+                   "after WAVEGRASP_RRD_MINUTES)")
     a = p.parse_args(argv)
     recording = a.recording or default_recording()
     try:
@@ -131,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         argv_up = [str(recording), "--pace", "realtime", "--out", str(out)]
         if a.tether is not None:
             argv_up += ["--tether", str(a.tether)]
-        environ = {**__import__("os").environ, "WAVEGRASP_LOOPS": str(loops)}
+        environ = {**os.environ, "WAVEGRASP_LOOPS": str(loops),
+                   **({} if a.rrd else {"WAVEGRASP_RRD": "false"})}
         run = up.prepare(up.parse_args(argv_up), environ)
     except (ValueError, RecordingError) as exc:
         print(f"wavegrasp soak: {exc}", file=sys.stderr)

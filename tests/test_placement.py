@@ -58,10 +58,13 @@ def test_compose_runs_the_path_real_time_with_priorities_rising_along_it() -> No
     assert all(services[n].environment["WAVEGRASP_REALTIME"] == "on" for n in path)
     off = load_compose(ROOT / "docker-compose.yml", {"WAVEGRASP_REALTIME": "off"})
     assert all(off[n].environment["WAVEGRASP_REALTIME"] == "off" for n in path)
-    # Docker lets a container change its scheduling policy only with this capability.
+    # Docker lets a container change its scheduling policy only with this capability; the
+    # edge stage (profile edge) is on the path where a tether runs, at the camera's priority.
     doc = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
     assert {n for n, s in doc["services"].items() if "SYS_NICE" in s.get("cap_add", [])} == (
-        set(path))
+        set(path) | {"edge"})
+    edge = load_compose(ROOT / "docker-compose.yml", {}, frozenset({"edge"}))["edge"]
+    assert edge.environment["WAVEGRASP_RT_PRIORITY"] == priority["player"]
 
 
 def test_parse_rt_priority() -> None:

@@ -107,6 +107,12 @@ class RecorderSettings(Settings):
     mcap_compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="run.mcap's "
                                                              "chunk compression")
     rrd: bool = Field(True, description="also write run.rrd (rerun) beside run.mcap")
+    rrd_minutes: float = Field(10.0, ge=0, description="run.rrd holds this many minutes of "
+                               "the run (wall time), then it is closed: rerun's recording "
+                               "stream keeps memory for what it has written (about 7 MB a "
+                               "minute of the edge stage's clouds, 40 of a camera's full "
+                               "ones; rerun-io/rerun#12623), and a long run would run out; "
+                               "0: no limit")
     viewer_url: str | None = Field(None, description="also stream the run live to this "
                                    "rerun viewer (rerun+http://HOST:PORT/proxy)")
     arm_urdf: str | None = None
@@ -168,6 +174,8 @@ class Recorder(Service):
         self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
         self._skip: dict[str, bool] = {}  # per key: excluded?
         self.rerun: RerunLog | None = None
+        self._started_rrd = time.monotonic()
+        self.rrd_minutes = settings.rrd_minutes
         if settings.rrd or settings.viewer_url:
             # rerun takes about half a CPU second to import: not for runs that do not use it
             # (the experiment's 36 runs).
@@ -213,11 +221,23 @@ class Recorder(Service):
             msg = self._record_own(d)
             written = not self.skips(d.key)
         if self.rerun is not None and written:
+            if self.rrd_minutes and time.monotonic() - self._started_rrd > 60 * self.rrd_minutes:
+                self.close_rrd()
+                return
             try:
                 self.log_to_rerun(d, msg)
             except Exception as exc:  # the MCAP has it; the view goes without it
                 self.counters[f"not in run.rrd: {type(exc).__name__}"] += 1
                 log.debug("%s: not in run.rrd: %s", d.key, exc)
+
+    def close_rrd(self) -> None:
+        """Stop writing run.rrd (``rrd_minutes`` are up); run.mcap goes on."""
+        assert self.rerun is not None
+        self.rerun.close()
+        self.rerun = None
+        self.counters["run.rrd closed after its minutes"] = 1
+        log.info("run.rrd closed after %.0f minutes (rrd_minutes); run.mcap goes on",
+                 self.rrd_minutes)
 
     def log_to_rerun(self, d: Delivery, msg: BaseModel | None) -> None:
         r = self.rerun
