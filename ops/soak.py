@@ -2,7 +2,8 @@
 
 Runs ``wavegrasp up --pace realtime`` on RECORDING (default: the sample) played over and over
 (the player's ``loops``: each loop's times follow on from the last, one stream) for at least
-M minutes, ``--tether MBIT`` as ``wavegrasp up``'s; run.mcap only, unless ``--rrd``. Every ``--sample-s`` seconds it reads the
+M minutes, ``--tether MBIT`` as ``wavegrasp up``'s; run.mcap only, unless ``--rrd``. Every
+``--sample-s`` seconds it reads the
 resident memory of each service (with the processes it started: perception's mesh worker).
 At the end it compares each service's memory over the run's last tenth with that over its
 second tenth (after the start's caches have filled): ``growth``, per cent. It counts the
