@@ -11,9 +11,6 @@ time it as the camera's own. Frames leave as unorganized clouds (height 1).
 
 from __future__ import annotations
 
-import argparse
-import sys
-
 import numpy as np
 from pydantic import Field
 
@@ -26,7 +23,7 @@ from wavegrasp.recording_io.ros_msgs import (
     view_points,
 )
 from wavegrasp.runtime.bus import BadMessage, Bus, Delivery
-from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import ObjectObservation
@@ -125,11 +122,4 @@ class EdgeService(Service):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argparse.ArgumentParser(prog="wavegrasp edge", description=__doc__).parse_args(argv)
-    try:
-        settings = EdgeSettings.from_env("edge")
-    except ValueError as exc:
-        print(f"wavegrasp edge: {exc}", file=sys.stderr)
-        return 2
-    setup_logging(settings.log_level)
-    return EdgeService(settings).run()
+    return service_main("edge", __doc__, EdgeSettings, EdgeService, argv)

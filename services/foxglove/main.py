@@ -12,7 +12,6 @@ recording's clock), so Foxglove's timeline follows the replay.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 
@@ -20,10 +19,9 @@ import foxglove
 from pydantic import Field
 
 from wavegrasp.recording_io.typestore import ros2_msgdef
-from wavegrasp.runtime.bus import CDR, BadMessage, Bus, Delivery
-from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.bus import CDR, BadMessage, Bus, Delivery, cdr_meta
+from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import ROS_KEYS
 
 log = logging.getLogger("wavegrasp.foxglove")
@@ -69,13 +67,7 @@ class FoxgloveBridge(Service):
         if not d.encoding.startswith(CDR):
             self.counters["not CDR: not served"] += 1
             return
-        msgtype = d.schema or ROS_KEYS.get(d.key)
-        if msgtype is None:
-            raise BadMessage(f"{d.key}: CDR without a message type in its encoding")
-        try:
-            att = CdrAttachment.decode(d.attachment)
-        except ValueError as exc:
-            raise BadMessage(f"{d.key}: {exc}") from None
+        msgtype, att = cdr_meta(d, ROS_KEYS)
         log_time = att.log_time_ns if att is not None and att.log_time_ns else (
             self.clock.now_ns() or None)
         self.channel(d.key, msgtype).log(d.payload, log_time=log_time)
@@ -86,17 +78,8 @@ class FoxgloveBridge(Service):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argparse.ArgumentParser(prog="wavegrasp foxglove", description=__doc__,
-                            formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
     try:
-        settings = FoxgloveSettings.from_env("foxglove")
-    except ValueError as exc:
-        print(f"wavegrasp foxglove: {exc}", file=sys.stderr)
-        return 2
-    setup_logging(settings.log_level)
-    try:
-        return FoxgloveBridge(settings).run()
+        return service_main("foxglove", __doc__, FoxgloveSettings, FoxgloveBridge, argv)
     except RuntimeError as exc:  # foxglove-sdk's, e.g. the port taken
-        print(f"wavegrasp foxglove: cannot listen on {settings.foxglove_host}:"
-              f"{settings.foxglove_port}: {exc}", file=sys.stderr)
+        print(f"wavegrasp foxglove: cannot serve: {exc}", file=sys.stderr)
         return 2

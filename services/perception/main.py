@@ -13,12 +13,10 @@ ground truth.
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import logging
 import multiprocessing as mp
 import signal
-import sys
 from concurrent.futures import Future, ProcessPoolExecutor
 
 import numpy as np
@@ -40,7 +38,7 @@ from wavegrasp.recording_io.ros_msgs import (
 )
 from wavegrasp.runtime.bus import Bus, Delivery
 from wavegrasp.runtime.placement import background_thread
-from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, new_header
 from wavegrasp.schemas import Header, Hop, ObjectMesh, ObjectObservation, Vec3
@@ -303,11 +301,4 @@ class PerceptionService(Service):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argparse.ArgumentParser(prog="wavegrasp perception", description=__doc__).parse_args(argv)
-    try:
-        settings = PerceptionSettings.from_env("perception")
-    except ValueError as exc:
-        print(f"wavegrasp perception: {exc}", file=sys.stderr)
-        return 2
-    setup_logging(settings.log_level)
-    return PerceptionService(settings).run()
+    return service_main("perception", __doc__, PerceptionSettings, PerceptionService, argv)

@@ -53,10 +53,9 @@ from wavegrasp.recording_io.ros_msgs import (
     decode_tf,
 )
 from wavegrasp.recording_io.typestore import ros2_msgdef, ros2_typestore
-from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, decode_model
+from wavegrasp.runtime.bus import CDR, JSON, BadMessage, Bus, Delivery, cdr_meta, decode_model
 from wavegrasp.runtime.service import Service, setup_logging
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.runtime.trace import CdrAttachment
 from wavegrasp.schemas import (
     CLOCK_KEY,
     MESSAGE_TYPES,
@@ -279,13 +278,7 @@ class Recorder(Service):
     def _record_cdr(self, d: Delivery) -> bool:
         """Write a CDR message (a camera cloud as the thinner says, one of a key excluded
         not at all), acknowledging camera frames; returns whether it was written."""
-        msgtype = d.schema or ROS_KEYS.get(d.key)
-        if msgtype is None:
-            raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
-        try:
-            att = CdrAttachment.decode(d.attachment)
-        except ValueError as exc:
-            raise BadMessage(f"{d.key}: {exc}") from None
+        msgtype, att = cdr_meta(d, ROS_KEYS)
         log_time = att.log_time_ns if att is not None and att.log_time_ns else self.clock.now_ns()
         # Camera clouds as the thinner says (all are acknowledged).
         write = not self.skips(d.key) and (

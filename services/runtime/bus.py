@@ -453,6 +453,18 @@ def remove_orphaned_segments(directory: Path = Path("/dev/shm")) -> int:
     return removed
 
 
+def cdr_meta(d: Delivery, types: dict[str, str]) -> tuple[str, CdrAttachment | None]:
+    """A CDR delivery's message type (from its encoding, else ``types`` by key) and its
+    attachment; BadMessage naming the key when either is missing or malformed."""
+    msgtype = d.schema or types.get(d.key)
+    if msgtype is None:
+        raise BadMessage(f"{d.key}: CDR payload without a message type in its encoding")
+    try:
+        return msgtype, CdrAttachment.decode(d.attachment)
+    except ValueError as exc:
+        raise BadMessage(f"{d.key}: {exc}") from None
+
+
 def decode_model(delivery: Delivery, model: type[BaseModel]) -> BaseModel:
     """Decode a payload as ``model``: CDR of its ``wavegrasp_msgs`` type, or JSON of the model
     (what a tool or an older sender may publish); raises :class:`BadMessage` naming key and

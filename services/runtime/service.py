@@ -7,6 +7,7 @@ can call handlers directly or run the loop over a real zenoh session.
 
 from __future__ import annotations
 
+import argparse
 import faulthandler
 import gc
 import logging
@@ -41,6 +42,23 @@ def setup_logging(level: str = "INFO") -> None:
     """One line per record on stderr; the launcher prefixes each line with the service name."""
     logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s",
                         force=True)
+
+
+def service_main(name: str, doc: str | None, settings_cls: type[Settings],
+                 service_cls: type[Service], argv: list[str] | None) -> int:
+    """``wavegrasp NAME``: a service without options of its own: its settings from the
+    environment (a bad one: one line naming it, exit 2), its logging, its loop."""
+    argparse.ArgumentParser(prog=f"wavegrasp {name}", description=doc,
+                            formatter_class=argparse.RawDescriptionHelpFormatter
+                            ).parse_args(argv)
+    try:
+        settings = settings_cls.from_env(name)
+        setup_logging(settings.log_level)
+        service = service_cls(settings)
+    except ValueError as exc:
+        print(f"wavegrasp {name}: {exc}", file=sys.stderr)
+        return 2
+    return service.run()
 
 
 def freeze_startup_objects() -> None:

@@ -15,8 +15,6 @@ live. It reads only what the pipeline publishes.
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 
 import numpy as np
@@ -27,7 +25,7 @@ from wavegrasp.arm import ArmModel
 from wavegrasp.arm.transforms import frame_along
 from wavegrasp.recording_io.joint_cdr import decode_joint_state
 from wavegrasp.runtime.bus import BadMessage, Bus, Delivery
-from wavegrasp.runtime.service import Service, setup_logging
+from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.scene import markers as mk
 from wavegrasp.schemas import (
@@ -175,13 +173,4 @@ class SceneService(Service):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argparse.ArgumentParser(prog="wavegrasp scene", description=__doc__,
-                            formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
-    try:
-        settings = SceneSettings.from_env("scene")
-        service = SceneService(settings)
-    except ValueError as exc:
-        print(f"wavegrasp scene: {exc}", file=sys.stderr)
-        return 2
-    setup_logging(settings.log_level)
-    return service.run()
+    return service_main("scene", __doc__, SceneSettings, SceneService, argv)
