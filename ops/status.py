@@ -108,6 +108,7 @@ class Progress:
                     f"{len(self.decisions) - len(go)} refused; {latency} (camera frame to "
                     f"decision); bad messages {summary.bad_total()}; restarts "
                     + (", ".join(f"{n} {k}" for n, k in restarts.items()) or "none"))
-        rows.append(f"see it: rerun {out / 'run.rrd'}  |  Foxglove: open {out / 'run.mcap'}"
+        rerun = f"rerun {out / 'run.rrd'}  |  " if (out / "run.rrd").exists() else ""
+        rows.append(f"see it: {rerun}Foxglove: open {out / 'run.mcap'}"
                     f"  |  per hop: wavegrasp latency {out / 'run.mcap'}")
         return "\n".join(rows)

@@ -17,7 +17,7 @@ def decision(plan_id: str, go: bool, reason: str, latency_ms: float) -> GateDeci
                         mean_error_m=0.0042, threshold_m=0.01, window_s=1.0, reason=reason)
 
 
-def test_the_status_line_and_the_table_say_what_the_run_came_to() -> None:
+def test_the_status_line_and_the_table_say_what_the_run_came_to(tmp_path: Path) -> None:
     progress = Progress(start_ns=10**9, end_ns=61 * 10**9)
     summary = RunSummary()
     progress.on_clock(Clock(header=new_header("player", 1, 13 * 10**9),
@@ -32,9 +32,12 @@ def test_the_status_line_and_the_table_say_what_the_run_came_to() -> None:
     line = progress.line(summary)
     assert line.startswith("12.0 / 60.0 s | frames 120 | observed 118 | predictions 0")
     assert "go 2 / no-go 1 | grasps 1 of 1 | latency p50 50 ms" in line
-    table = progress.table(summary, {"perception": 1}, Path("/runs/x")).splitlines()
+    out = tmp_path / "x"
+    out.mkdir()
+    (out / "run.rrd").write_bytes(b"")
+    table = progress.table(summary, {"perception": 1}, out).splitlines()
     assert table[1].split() == ["1", "success", "4.2", "mm", "(ε", "10)", "2-a"]
     assert table[2].startswith("gate: 1 plans and 1 updates approved, 1 refused; "
                                "latency p50 / p99 50 / 60 ms")
     assert table[2].endswith("bad messages 0; restarts perception 1")
-    assert table[3].startswith("see it: rerun /runs/x/run.rrd")
+    assert table[3].startswith(f"see it: rerun {out / 'run.rrd'}  |  Foxglove: open")
