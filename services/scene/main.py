@@ -90,7 +90,7 @@ class SceneService(Service):
             q_arm = np.array([position[n] for n in self.arm.joint_names])
         except KeyError as exc:
             raise BadMessage(f"joint_states: no position of joint {exc}") from None
-        T_links = self.arm._chain.forward_all(q_arm)
+        T_links = self.arm.forward_all(q_arm)
         base = self.arm.base_link
         frames = [(base, link, T) for link, T in zip(self.arm.link_names, T_links, strict=True)]
         at = dict(zip(self.arm.link_names, T_links, strict=True)) | {base: np.eye(4)}

@@ -33,9 +33,8 @@ def message(msgtype: str, store: Typestore | None = None, **fields: Any) -> Any:
         if name in fields:
             values[name] = fields[name]
         elif kind.name == "BASE":
-            values[name] = {"string": "", "bool": False}.get(spec[0], 0 if "int" in spec[0]
-                                                             or spec[0] in ("uint8", "byte",
-                                                                            "char") else 0.0)
+            values[name] = {"string": "", "bool": False, "float32": 0.0,
+                            "float64": 0.0}.get(spec[0], 0)
         elif kind.name == "NAME":
             values[name] = message(spec, store)
         elif kind.name == "SEQUENCE" and spec[0][0].name == "BASE":
