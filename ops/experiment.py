@@ -64,6 +64,13 @@ class Trials:
     #: Per service, the CPU seconds its process used (its last stats; a forked
     #: service's from its fork, not the fork server's loading of the libraries).
     cpu_s: dict[str, float] = field(default_factory=dict)
+    #: The gate's figures (approvals, refusals, latency, error at approval: summary.json's
+    #: ``gate``), bad messages and service restarts in the run.
+    gate: dict = field(default_factory=dict)
+    bad_messages: int = 0
+    restarts: int = 0
+    #: The run's folder, relative to the experiment's.
+    run: str = ""
 
     def rate(self, within: int) -> float:
         """Share of the trials that succeeded within ``within`` attempts."""
@@ -233,7 +240,11 @@ def run_one(predictor: str, execution: str, sea: str, wave: int, obj: str, trial
                      success_attempt=success, failures=failures, unfinished=unfinished,
                      seconds=seconds, exit_code=code,
                      approval_to_grasp_s=approval_times(summary.get("outcomes", [])),
-                     cpu_s=service_cpu(summary))
+                     cpu_s=service_cpu(summary), gate=summary.get("gate", {}),
+                     bad_messages=sum(sum(per_key.values()) for per_key
+                                      in summary.get("bad_messages", {}).values()),
+                     restarts=sum(map(len, summary.get("restarts", {}).values())),
+                     run=str(run_dir.relative_to(out)))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -305,11 +316,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     order = {job: i for i, job in enumerate(jobs)}
     results.sort(key=lambda r: order[(r.predictor, r.execution, *r.config)])
-    from wavegrasp.ops.report import write_report
+    from wavegrasp.ops.report import end_table, write_report
 
     elapsed = time.monotonic() - started
     write_report(a.out, results, vars(a) | {"out": str(a.out), "elapsed_s": round(elapsed, 1)})
-    print((a.out / "report.md").read_text())
+    print(end_table(a.out, results))
     return 1 if any(r.exit_code for r in results) else 0
 
 

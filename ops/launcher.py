@@ -584,6 +584,7 @@ def summarize(run: Run, why: str) -> dict:
         "duration_s": round(time.time() - run.started, 3), **collected.as_dict(),
         "restarts": {n: [asdict(r) for r in rs] for n, rs in launcher.restarts.items() if rs},
         "files": sorted(p.name for p in run.out.glob("run*.mcap")),
+        "gate": launcher.progress.gate(),
     }
     if run.tether is not None:
         summary["tether"] = run.tether.traffic()

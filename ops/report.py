@@ -155,3 +155,30 @@ def plot_failures(path: Path, results: list) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def end_table(out: Path, results: list) -> str:
+    """What ``wavegrasp eval`` prints at its end: a row per run (its trials' succeeding
+    attempts, failed attempts by kind, mean prediction error at approval, the gate's
+    approvals and refusals, latency p50 / p99, bad messages, restarts), each predictor's
+    success, and where to look next."""
+    rows = [f"{'run':34s} {'success at attempt':>18s}  {'failed attempts':24s} "
+            f"{'error':>8s}  {'go plan/update/no':>17s}  {'p50/p99 ms':>11s}  bad  restarts"]
+    for r in results:
+        attempts = ",".join(str(a) if a else "-" for a in r.success_attempt)
+        failed = ", ".join(f"{k} {n}" for k, n in sorted(r.failures.items())) or "none"
+        g = r.gate
+        errors = g.get("error_at_approval_mm", [])
+        error = f"{np.mean(errors):.1f} mm" if errors else "-"
+        gate = f"{g.get('plans_approved', 0)}/{g.get('updates_approved', 0)}/{g.get('refused', 0)}"
+        p50, p99 = g.get("latency_p50_ms"), g.get("latency_p99_ms")
+        latency = f"{p50:.0f}/{p99:.0f}" if p50 is not None and p99 is not None else "-"
+        rows.append(f"{r.run or r.label:34s} {attempts:>18s}  {failed[:24]:24s} {error:>8s}  "
+                    f"{gate:>17s}  {latency:>11s}  {r.bad_messages:3d}  {r.restarts:8d}")
+    for name, s in summary(results).items():
+        rows.append(f"{name}: success {s['first_attempt']:.0%} first attempt, "
+                    f"{s['after_reattempts']:.0%} after reattempts, {s['trials']} trials")
+    rows.append(f"see it: the report {out / 'report.md'} (plots success.png, failures.png)  |  "
+                f"a run in Foxglove: open {out}/RUN/run.mcap  |  per hop: wavegrasp latency "
+                f"{out}/RUN/run.mcap")
+    return "\n".join(rows)

@@ -84,6 +84,20 @@ class Progress:
                   f"latency p50 {p50:.0f} ms" if p50 is not None else "latency p50 -"]
         return " | ".join(parts)
 
+    def gate(self) -> dict:
+        """The gate's figures for ``summary.json``: plans and updates approved, refused, the
+        camera-to-decision latency p50 / p99 (ms, None without a decision) and each approved
+        plan's prediction error (mm)."""
+        go = [d for d in self.decisions if d.go]
+        updates = sum(d.update for d in go)
+        errors = [round(d.error_mm, 2) for d in go if not d.update and d.error_mm is not None]
+        p50, p99 = self.latency_ms(50), self.latency_ms(99)
+        return {"plans_approved": len(go) - updates, "updates_approved": updates,
+                "refused": len(self.decisions) - len(go),
+                "latency_p50_ms": None if p50 is None else round(p50, 1),
+                "latency_p99_ms": None if p99 is None else round(p99, 1),
+                "error_at_approval_mm": errors}
+
     def table(self, summary: RunSummary, restarts: dict[str, int], out: Path) -> str:
         """Each attempt (its outcome, and the prediction error when it was approved against
         ε) and the run's totals, then where to look next."""
@@ -93,22 +107,38 @@ class Progress:
             d = approvals.get(o["plan_id"])
             error = (f"{d.error_mm:.1f} mm (ε {d.threshold_mm:.0f})" if d is not None
                      and d.error_mm is not None else "-")
-            outcome = ("success" if o["success"] else
-                       f"aborted: {str(o.get('evidence', {}).get('reason', ''))[:25]}"
-                       if o.get("aborted") else f"failed: {o.get('failure')}")
-            rows.append(f"{o['attempt']:>7d}  {outcome:34s} {error:>20s}  {o['plan_id'] or '-'}")
+            rows.append(f"{o['attempt']:>7d}  {outcome_text(o):34s} {error:>20s}  "
+                        f"{o['plan_id'] or '-'}")
         if not summary.outcomes:
             rows.append(f"{'':>7s}  no attempt")
-        p50, p99 = self.latency_ms(50), self.latency_ms(99)
-        go = [d for d in self.decisions if d.go]
-        latency = (f"latency p50 / p99 {p50:.0f} / {p99:.0f} ms" if p50 is not None
-                   and p99 is not None else "no decision")
-        rows.append(f"gate: {len(go) - sum(d.update for d in go)} plans and "
-                    f"{sum(d.update for d in go)} updates approved, "
-                    f"{len(self.decisions) - len(go)} refused; {latency} (camera frame to "
-                    f"decision); bad messages {summary.bad_total()}; restarts "
-                    + (", ".join(f"{n} {k}" for n, k in restarts.items()) or "none"))
-        rerun = f"rerun {out / 'run.rrd'}  |  " if (out / "run.rrd").exists() else ""
-        rows.append(f"see it: {rerun}Foxglove: open {out / 'run.mcap'}"
-                    f"  |  per hop: wavegrasp latency {out / 'run.mcap'}")
+        rows.append(gate_line(self.gate(), summary.bad_total(), restarts))
+        rows.append(see_it(out))
         return "\n".join(rows)
+
+
+def outcome_text(outcome: dict) -> str:
+    """An attempt's outcome (a GraspOutcome's fields) in a few words."""
+    if outcome["success"]:
+        return "success"
+    if outcome.get("aborted"):
+        return f"aborted: {str(outcome.get('evidence', {}).get('reason', ''))[:25]}"
+    return f"failed: {outcome.get('failure')}"
+
+
+def gate_line(gate: dict, bad: int, restarts: dict[str, int]) -> str:
+    """The gate's figures (:meth:`Progress.gate`), bad messages and restarts in one line."""
+    p50, p99 = gate["latency_p50_ms"], gate["latency_p99_ms"]
+    latency = (f"latency p50 / p99 {p50:.0f} / {p99:.0f} ms" if p50 is not None
+               and p99 is not None else "no decision")
+    return (f"gate: {gate['plans_approved']} plans and {gate['updates_approved']} updates "
+            f"approved, {gate['refused']} refused; {latency} (camera frame to decision); "
+            f"bad messages {bad}; restarts "
+            + (", ".join(f"{n} {k}" for n, k in restarts.items()) or "none"))
+
+
+def see_it(out: Path) -> str:
+    """The commands that open the run in ``out``: rerun (where run.rrd was written),
+    Foxglove, and the latency per hop."""
+    rerun = f"rerun {out / 'run.rrd'}  |  " if (out / "run.rrd").exists() else ""
+    return (f"see it: {rerun}Foxglove: open {out / 'run.mcap'}"
+            f"  |  per hop: wavegrasp latency {out / 'run.mcap'}")

@@ -24,6 +24,7 @@ def free_port() -> int:
 def without_timings(report: dict) -> dict:
     for run in report["runs"]:
         del run["seconds"], run["cpu_s"]
+        del run["gate"]["latency_p50_ms"], run["gate"]["latency_p99_ms"]
     del report["settings"]  # the folder, --cluster, the elapsed time
     return report
 

@@ -69,6 +69,27 @@ def test_the_report_gives_each_sea_its_own_rows(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "report.json").read_text())["runs"][1]["sea"] == "jonswap"
 
 
+def test_the_experiment_ends_with_a_row_per_run_and_where_to_look(tmp_path: Path) -> None:
+    from wavegrasp.ops.report import end_table
+
+    gate = {"plans_approved": 3, "updates_approved": 40, "refused": 7, "latency_p50_ms": 41.2,
+            "latency_p99_ms": 88.9, "error_at_approval_mm": [2.0, 4.0, 3.0]}
+    runs = [RunResult("blend", 2, "can_half", trials=2, success_attempt=[1, 0],
+                      failures={"aborted": 1, "timing": 2}, gate=gate, bad_messages=1,
+                      restarts=0, run="runs/blend-wave2-can_half"),
+            RunResult("linear", 2, "can_half", trials=2, success_attempt=[2, 1],
+                      failures={"timing": 1}, run="runs/linear-wave2-can_half")]
+    lines = end_table(tmp_path, runs).splitlines()
+    assert lines[1].split() == ["runs/blend-wave2-can_half", "1,-", "aborted", "1,", "timing",
+                                "2", "3.0", "mm", "3/40/7", "41/89", "1", "0"]
+    assert lines[2].split()[1:4] == ["2,1", "timing", "1"]  # no gate figures: dashes
+    assert lines[2].split()[4:7] == ["-", "0/0/0", "-"]
+    assert lines[3] == "blend: success 50% first attempt, 50% after reattempts, 2 trials"
+    assert lines[4] == "linear: success 50% first attempt, 100% after reattempts, 2 trials"
+    assert lines[5].startswith(f"see it: the report {tmp_path / 'report.md'}")
+    assert f"open {tmp_path}/RUN/run.mcap" in lines[5]
+
+
 def run_eval(out: Path, *extra: str) -> dict:
     result = subprocess.run(wavegrasp_cmd(
         "eval", "--out", str(out), "--trials", "2", "--waves", "2", "--objects", "can_half",
@@ -96,6 +117,10 @@ def test_a_small_experiment_end_to_end_repeats_exactly(tmp_path: Path) -> None:
     assert {"perception", "predictor", "planner", "gate", "sim", "recorder"} <= set(run["cpu_s"])
     assert all(cpu > 0 for cpu in run["cpu_s"].values()), run["cpu_s"]
     assert "CPU seconds per service" in (out / "report.md").read_text()
+    # The gate's figures, from the run's own summary.json, for the end table.
+    assert run["run"] == "runs/blend-wave2-can_half"
+    assert run["gate"] == summary["gate"] and run["gate"]["plans_approved"] >= 1
+    assert run["gate"]["latency_p50_ms"] <= run["gate"]["latency_p99_ms"]
     again = run_eval(tmp_path / "again")  # lockstep: the same trials, attempt for attempt
     assert again["runs"][0]["success_attempt"] == run["success_attempt"]
     assert again["runs"][0]["failures"] == run["failures"]
