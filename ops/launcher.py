@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import json
 import os
 import queue
@@ -488,7 +489,12 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
 
 def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
     """Raise ValueError naming the first of the run's choices that cannot work: a predictor
-    that does not exist, an arm description that does not load, a port taken."""
+    that does not exist, an arm description that does not load, a port taken; ImportError
+    for a system library that open3d or PyBullet cannot load."""
+    # open3d and PyBullet load system libraries: a missing one is named in one line (the
+    # command's handler, wavegrasp.cli) before any service starts and fails on it.
+    importlib.import_module("open3d")
+    importlib.import_module("pybullet")
     if args.predictor and args.predictor not in MODELS:
         raise ValueError(f"--predictor {args.predictor}: no such predictor (there are "
                          f"{', '.join(MODELS)})")

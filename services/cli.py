@@ -89,8 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         # mask): the service loop then takes them with sigtimedwait, whichever thread the
         # kernel would have picked and whatever handler a library installed.
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
+    try:  # open3d and PyBullet load on import, some commands import them late
         module = importlib.import_module(COMMANDS[name][0])
+        return int(module.main(rest) or 0)
     except (ImportError, OSError) as exc:
         missing = system_library(exc)
         if missing is None:
@@ -100,7 +101,6 @@ def main(argv: list[str] | None = None) -> int:
               f"{APT_PACKAGES.get(missing.split('.so')[0], '<its package>')}`, or run "
               "`bash ops/setup.sh`", file=sys.stderr)
         return 2
-    return int(module.main(rest) or 0)
 
 
 #: Debian's packages of the system libraries our wheels load (open3d's above all).

@@ -235,12 +235,41 @@ def test_mistakes_get_one_line_and_exit_2(recording: Path, tmp_path: Path) -> No
         taken.close()
 
 
-def test_a_missing_system_library_is_named_with_its_package() -> None:
-    """open3d's wheel loads libusb (and others) from the system: an import that cannot is
-    named in one line with the Debian package that has it."""
+LIBRARIES = Path("/usr/lib/x86_64-linux-gnu")
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or not (LIBRARIES / "libusb-1.0.so.0").exists(),
+                    reason="hiding a system library needs root (a mount namespace)")
+def test_a_missing_system_library_is_named_with_its_package(tmp_path: Path) -> None:
+    """open3d's wheel loads libusb from the system: without it a service and `wavegrasp up`
+    name it in one line with the Debian package that has it, and exit 2 before anything
+    runs. The library is hidden by an overlay (a whiteout) in a mount namespace of the
+    commands' own; the machine's stays as it is."""
+    upper, work = tmp_path / "upper", tmp_path / "work"
+    upper.mkdir()
+    work.mkdir()
+    os.mknod(upper / "libusb-1.0.so.0", 0o600 | 0o020000, os.makedev(0, 0))  # a whiteout
+    mount = (f"mount -t overlay overlay -o lowerdir={LIBRARIES},upperdir={upper},"
+             f"workdir={work} {LIBRARIES}")
+    recording = Path(__file__).parents[1] / "recordings" / "wave1-buoy-5s.mcap"
+    out = tmp_path / "run"
+    for command in (wavegrasp_cmd("perception"),
+                    wavegrasp_cmd("up", str(recording), "--out", str(out))):
+        result = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c",
+                                 f'{mount} && exec "$@"', "sh", *command],
+                                capture_output=True, text=True, timeout=120)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 2, (command, result.stdout[-2000:], result.stderr[-2000:])
+        assert len(lines) == 1 and lines[0].endswith(
+            "the system library libusb-1.0.so.0 is missing (open3d and PyBullet need it): "
+            "install it, e.g. `sudo apt-get install libusb-1.0-0`, or run "
+            "`bash ops/setup.sh`"), lines
+    assert not out.exists()  # nothing ran
+
+
+def test_only_a_missing_shared_object_is_taken_for_a_system_library() -> None:
     from wavegrasp.cli import system_library
 
-    error = OSError("libusb-1.0.so.0: cannot open shared object file: No such file or "
-                    "directory")
-    assert system_library(error) == "libusb-1.0.so.0"
+    assert system_library(OSError("libgomp.so.1: cannot open shared object file: No such "
+                                  "file or directory")) == "libgomp.so.1"
     assert system_library(ImportError("No module named 'open3d'")) is None
