@@ -15,6 +15,7 @@ from wavegrasp.schemas.messages import (
     ArmState,
     CartesianSample,
     Clock,
+    DecisionLatency,
     FrameAck,
     GateAbort,
     GateDecision,
@@ -45,6 +46,7 @@ MESSAGE_TYPES: dict[str, type[BaseModel]] = {
         ArmStandby,
         GateDecision,
         GateAbort,
+        DecisionLatency,
         GraspOutcome,
         ArmState,
         Clock,
@@ -71,6 +73,7 @@ KEY_TYPES: dict[str, type[BaseModel]] = {
     "wavegrasp/sim/arm_state": ArmState,
     "wavegrasp/sim/outcome": GraspOutcome,
     "wavegrasp/player/status": PlayerStatus,
+    "wavegrasp/scene/latency": DecisionLatency,
 }
 
 ROS_KEYS: dict[str, str] = {
@@ -113,7 +116,8 @@ def model_for_key(key: str) -> type[BaseModel] | None:
 
 
 __all__ = [
-    "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "FrameAck", "GateAbort", "GateDecision",
+    "ArmState", "CartesianSample", "CLOCK_KEY", "Clock", "DecisionLatency", "FrameAck",
+    "GateAbort", "GateDecision",
     "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Heartbeat", "HEARTBEAT_KEY", "Hop",
     "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",

@@ -249,6 +249,20 @@ class GateDecision(Message):
                                     "recording seconds: its data's capture to now")
 
 
+class DecisionLatency(Message):
+    """``wavegrasp/scene/latency``: where a gate decision's milliseconds went, read from its
+    trace (wall clock): each service's time in hand (``perception``) and each transfer
+    (``perception -> predictor``), then camera frame to decision; for plots of the latency
+    per hop (Foxglove: ``hops_ms[:]{key=="planner"}.value``)."""
+
+    header: Header
+    plan_id: str
+    go: bool
+    hops_ms: dict[str, float] = Field(default_factory=dict, description="per hop, in the "
+                                      "trace's order, milliseconds")
+    total_ms: float = Field(description="the camera frame's publication to the decision, ms")
+
+
 FailureKind = Literal["prediction", "collision", "timing", "abrupt_change", "unreachable", "other"]
 
 

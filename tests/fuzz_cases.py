@@ -25,6 +25,7 @@ from wavegrasp.schemas import (
     ArmState,
     CartesianSample,
     Clock,
+    DecisionLatency,
     FrameAck,
     GateAbort,
     GateDecision,
@@ -431,6 +432,9 @@ EXAMPLES: dict[type[BaseModel], Callable[[], BaseModel]] = {
                                        reason="warming up"),
     GateAbort: lambda: GateAbort(header=header(10**18), plan_id="p", reason="stale "
                                  "prediction: 0.70 s old", value=0.7, limit=0.5),
+    DecisionLatency: lambda: DecisionLatency(header=header(10**18), plan_id="p", go=True,
+                                             hops_ms={"perception": 12.5, "planner -> gate": 0.4},
+                                             total_ms=30.1),
     GraspOutcome: lambda: GraspOutcome(header=header(10**18), plan_id="p", trial=0, attempt=1,
                                        success=False, failure="timing",
                                        evidence={"object_passed_s": 0.2, "arm": "late"}),

@@ -5,6 +5,7 @@ run's file carries the same scene channels."""
 from __future__ import annotations
 
 import json
+import re
 import struct
 import subprocess
 import time
@@ -14,9 +15,13 @@ import websocket
 from mcap.reader import make_reader
 
 from wavegrasp.ops.launcher import free_port
+from wavegrasp.recording_io.own_messages import read_own
+from wavegrasp.runtime.trace import hop_times_ms
+from wavegrasp.schemas import model_for_key
 
-from conftest import wavegrasp_cmd
+from conftest import make_recording, wavegrasp_cmd
 
+LAYOUT = Path(__file__).parents[1] / "ops" / "foxglove" / "layout.json"
 SCENE = {"/tf", "/robot_description", "/wavegrasp/scene/markers"}
 
 
@@ -64,8 +69,25 @@ class Client:
                 self.received[topic] = self.received.get(topic, 0) + 1
 
 
-def test_foxglove_sees_the_scene_live_and_the_run_file_has_it(recording: Path,
-                                                               tmp_path: Path) -> None:
+def layout_paths() -> dict[str, set[str]]:
+    """The topics the committed layout's panels show, each with the first fields of its
+    message paths (``/wavegrasp/gate/decision.mean_error_m``: ``mean_error_m``)."""
+    config = json.loads(LAYOUT.read_text())["configById"]
+    paths: dict[str, set[str]] = {}
+    for panel in config.values():
+        texts = [p["value"] for p in panel.get("paths", [])] + list(panel.get("topics", {}))
+        texts += [panel.get("topicPath", "")] + [layer.get("topic", "") for layer in
+                                                 panel.get("layers", {}).values()]
+        for text in filter(None, texts):
+            topic, field = re.match(r"(/[\w/]+)\.?(\w*)", text).groups()
+            paths.setdefault(topic, set()).update({field} - {""})
+    return paths
+
+
+def test_foxglove_sees_the_scene_live_and_the_run_file_has_it(tmp_path: Path) -> None:
+    # long enough for the gate to decide (the latency per hop comes with each decision)
+    recording = make_recording(tmp_path / "can.mcap", seconds=12.0, seed=3, wave=2,
+                               object="can_empty")
     port, out = free_port(), tmp_path / "run"
     run = subprocess.Popen(wavegrasp_cmd("up", str(recording), "--foxglove", "--foxglove-port",
                                          str(port), "--out", str(out)),
@@ -88,3 +110,23 @@ def test_foxglove_sees_the_scene_live_and_the_run_file_has_it(recording: Path,
     counts = {c.topic: summary.statistics.channel_message_counts.get(i, 0)
               for i, c in summary.channels.items()}
     assert all(counts.get(topic, 0) > 0 for topic in SCENE), counts
+    # The committed layout shows what a run serves and records (the edge stage's clouds
+    # only cross a tether; the latency comes with the first decision), and its plots' fields
+    # are the messages' own.
+    layout = layout_paths()
+    shown = advertised | {t for t, n in counts.items() if n} | {"/wavegrasp/edge/points"}
+    assert set(layout) <= shown, set(layout) - shown
+    for topic, fields in layout.items():
+        model = model_for_key(topic.lstrip("/"))
+        assert model is not None or not fields, topic
+        assert fields <= set(model.model_fields if model else ()), (topic, fields)
+    # The latency per hop, as the layout plots it: each decision's trace, hop by hop.
+    decisions = [m for _, m, _ in read_own(out / "run.mcap", ["wavegrasp/gate/decision"])]
+    latencies = [m for _, m, _ in read_own(out / "run.mcap", ["wavegrasp/scene/latency"])]
+    assert latencies, "no decision's latency"
+    assert sorted(m.plan_id for m in latencies) == sorted(m.plan_id for m in decisions)
+    for m in latencies:
+        trace = next(d.header.trace for d in decisions if d.plan_id == m.plan_id)
+        assert m.hops_ms == dict(hop_times_ms(trace))
+        assert {"perception", "predictor", "planner", "gate"} <= set(m.hops_ms)
+        assert m.total_ms == (trace[-1].sent_ns - trace[0].recv_ns) / 1e6

@@ -8,7 +8,9 @@ From the bus it makes, in the recording's time:
   ``description_period_s`` (ROS latches it; a viewer that joins late gets it);
 - ``wavegrasp/scene/markers`` (``visualization_msgs/msg/MarkerArray``): the object's mesh
   and centroid, the prediction with its sigma at the end, the grasp pose and the approach
-  path of the latest plan, and the gate's verdict (its error against ε) over the object.
+  path of the latest plan, and the gate's verdict (its error against ε) over the object;
+- ``wavegrasp/scene/latency`` (:class:`~wavegrasp.schemas.DecisionLatency`): each gate
+  decision's milliseconds per hop, from its trace, for plots.
 The recorder writes them into run.mcap like every channel; ``wavegrasp foxglove`` serves them
 live. It reads only what the pipeline publishes.
 """
@@ -27,8 +29,10 @@ from wavegrasp.recording_io.joint_cdr import decode_joint_state
 from wavegrasp.runtime.bus import BadMessage, Bus, Delivery
 from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
+from wavegrasp.runtime.trace import hop_times_ms, new_header
 from wavegrasp.scene import markers as mk
 from wavegrasp.schemas import (
+    DecisionLatency,
     GateDecision,
     GraspPlan,
     MotionPrediction,
@@ -39,6 +43,7 @@ from wavegrasp.schemas import (
 from wavegrasp.schemas.mesh_codec import decode_mesh
 
 MARKERS_KEY = "wavegrasp/scene/markers"
+LATENCY_KEY = "wavegrasp/scene/latency"
 TF_KEY = "tf"
 DESCRIPTION_KEY = "robot_description"
 GREEN, RED, BLUE, ORANGE, GREY = ((0.2, 0.8, 0.3, 1.0), (0.9, 0.2, 0.2, 1.0),
@@ -71,6 +76,7 @@ class SceneService(Service):
         self.description = mk.text_message(self.arm.urdf_path.read_text())
         self._described_at = 0.0
         self.centroid: np.ndarray | None = None
+        self.latencies = 0  # DecisionLatency messages published
         b = self.bus
         b.subscribe(settings.joint_states_key, self.on_joint_state)
         b.subscribe("wavegrasp/perception/object", self.on_object, ObjectObservation)
@@ -155,6 +161,7 @@ class SceneService(Service):
         self.publish_markers(*arrows)
 
     def on_decision(self, msg: GateDecision, _d: Delivery) -> None:
+        self.publish_latency(msg)
         if self.centroid is None:
             return
         T = np.eye(4)
@@ -164,6 +171,19 @@ class SceneService(Service):
                 f"NO-GO  {msg.reason[:60]}")
         self.publish_markers(mk.marker("gate", mk.TEXT, msg.header.stamp_ns, "world",
                                        GREEN if msg.go else RED, (0, 0, 0.04), T=T, text=text))
+
+    def publish_latency(self, msg: GateDecision) -> None:
+        """The decision's milliseconds per hop (:class:`DecisionLatency`), from its trace."""
+        trace = msg.header.trace
+        try:
+            hops = dict(hop_times_ms(trace))
+        except ValueError as exc:
+            raise BadMessage(f"wavegrasp/gate/decision header.trace: {exc}") from None
+        self.latencies += 1
+        self.bus.publish(LATENCY_KEY, DecisionLatency(
+            header=new_header("scene", self.latencies, msg.header.stamp_ns),
+            plan_id=msg.plan_id, go=msg.go, hops_ms=hops,
+            total_ms=(trace[-1].sent_ns - trace[0].recv_ns) / 1e6))
 
     def on_tick(self) -> None:
         now = time.monotonic()
