@@ -53,9 +53,10 @@ class ArmModel:
         self.jaw_joints = robot.jaw_joints if robot.jaw_joints is not None else [
             j.name for j in robot.joints.values()
             if j.type == "prismatic" and j.parent in on_chain and j.child not in on_chain]
-        self._jaw = [robot.joints[name] for name in self.jaw_joints]
+        #: The jaw's fingers' URDF joints (their origins and axes: a viewer draws them).
+        self.jaw = [robot.joints[name] for name in self.jaw_joints]
         joints = {j.name: joint_limits(j, robot.extra_limits.get(j.name, {}))
-                  for j in [*self._chain.movable, *self._jaw]}
+                  for j in [*self._chain.movable, *self.jaw]}
         self.joints = apply_overrides(joints, overrides)
         self.jaw_max_opening_m = robot.jaw_max_opening if robot.jaw_max_opening is not None \
             else sum(self.joints[n].upper - self.joints[n].lower for n in self.jaw_joints)
@@ -81,7 +82,7 @@ class ArmModel:
         self._restarts = list(rng.uniform(self.lower, self.upper, (N_RESTARTS, n)))
         self._shapes = robot.links
         self._jaw_parent = [self.link_names.index(j.parent) if j.parent in self.link_names
-                            else -1 for j in self._jaw]
+                            else -1 for j in self.jaw]
         self._capsule_layout()
 
     @classmethod
@@ -164,14 +165,14 @@ class ArmModel:
         """:meth:`link_capsules` at m configurations q (array, shape (m, n), radians):
         p0, p1 : arrays, shape (m, c, 3), metres, frame base_link; radius : shape (c,)."""
         chain = self._chain.forward_batch(np.asarray(q, dtype=float))
-        frames = np.concatenate([chain, np.repeat(chain[:, :1], len(self._jaw), axis=1)], axis=1)
+        frames = np.concatenate([chain, np.repeat(chain[:, :1], len(self.jaw), axis=1)], axis=1)
         opening = self.jaw_max_opening_m if jaw_opening_m is None else jaw_opening_m
-        for joint, parent, k in zip(self._jaw, self._jaw_parent, self._jaw_frame, strict=True):
+        for joint, parent, k in zip(self.jaw, self._jaw_parent, self._jaw_frame, strict=True):
             if parent < 0:
                 continue
             lim = self.joints[joint.name]
             M = joint.origin.copy()
-            M[:3, 3] += M[:3, :3] @ (np.clip(opening / len(self._jaw), lim.lower, lim.upper)
+            M[:3, 3] += M[:3, :3] @ (np.clip(opening / len(self.jaw), lim.lower, lim.upper)
                                      * joint.axis)
             frames[:, k] = frames[:, parent] @ M
         T = frames[:, self._capsule_frame]
@@ -185,7 +186,7 @@ class ArmModel:
         """Which frame each capsule hangs on and its ends there, for :meth:`capsules_batch`;
         the jaw fingers' frames are appended after the chain's."""
         n_links = len(self.link_names)
-        self._jaw_frame = [n_links + i for i in range(len(self._jaw))]
+        self._jaw_frame = [n_links + i for i in range(len(self.jaw))]
         frame, p0, p1, radius, to_next = [], [], [], [], []
         moved = {j.child for j in self._chain.movable}
         for k, name in enumerate(self.link_names):
@@ -202,7 +203,7 @@ class ArmModel:
                 p1.append(c.p1)
                 radius.append(c.radius)
         self.jaw_capsule_count = 0
-        for joint, parent, k in zip(self._jaw, self._jaw_parent, self._jaw_frame, strict=True):
+        for joint, parent, k in zip(self.jaw, self._jaw_parent, self._jaw_frame, strict=True):
             if parent < 0:
                 continue
             for c in self._shapes.get(joint.child, []):

@@ -100,7 +100,7 @@ class SceneService(Service):
         base = self.arm.base_link
         frames = [(base, link, T) for link, T in zip(self.arm.link_names, T_links, strict=True)]
         at = dict(zip(self.arm.link_names, T_links, strict=True)) | {base: np.eye(4)}
-        for joint in self.arm._jaw:
+        for joint in self.arm.jaw:
             if joint.parent in at:
                 move = np.eye(4)
                 move[:3, 3] = joint.axis * position.get(joint.name, 0.0)
