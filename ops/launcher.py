@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import json
 import os
 import queue
@@ -24,18 +23,18 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-from wavegrasp.arm import ArmModel
 from wavegrasp.ops import forked
+from wavegrasp.ops.choices import check_choices
 from wavegrasp.ops.compose import ComposeService, load_compose, start_order
 from wavegrasp.ops.sample import default_recording, project_root
 from wavegrasp.ops.status import Progress
-from wavegrasp.ops.tether import CLOUD_SHARE, VEHICLE, Tether
+from wavegrasp.ops.tether import CLOUD_SHARE, VEHICLE, Tether, across_tether
 from wavegrasp.ops.viewer import viewer_url
-from wavegrasp.predictor import DEFAULT_MODEL, MODELS
+from wavegrasp.predictor import DEFAULT_MODEL
 from wavegrasp.recorder.summary import RunSummary
 from wavegrasp.recording_io.reader import (
     RecordingError,
@@ -54,8 +53,7 @@ from wavegrasp.schemas import (
 )
 
 STOP_TIMEOUT_S = 10.0
-#: The camera's clouds, and the edge stage's that cross a tether instead.
-CAMERA_KEY = "trisect/points"
+#: The edge stage's clouds, which cross a tether instead of the camera's.
 EDGE_POINTS_KEY = "wavegrasp/edge/points"
 #: As compose restarts a service: after 100 ms, doubling with each restart in a row, reset once
 #: it has stayed up this long.
@@ -485,63 +483,6 @@ def prepare(args: argparse.Namespace, environ: Mapping[str, str] | None = None,
         launcher.progress.end_ns = opened.start_ns + int(loops) * (opened.end_ns
                                                                   - opened.start_ns)
     return Run(args, launcher, env, out, recording, tether=tether)
-
-
-def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
-    """Raise ValueError naming the first of the run's choices that cannot work: a predictor
-    that does not exist, an arm description that does not load, a port taken; ImportError
-    for a system library that open3d or PyBullet cannot load."""
-    # open3d and PyBullet load system libraries: a missing one is named in one line (the
-    # command's handler, wavegrasp.cli) before any service starts and fails on it.
-    importlib.import_module("open3d")
-    importlib.import_module("pybullet")
-    if args.predictor and args.predictor not in MODELS:
-        raise ValueError(f"--predictor {args.predictor}: no such predictor (there are "
-                         f"{', '.join(MODELS)})")
-    urdf = environ.get("WAVEGRASP_ARM_URDF")
-    if urdf:
-        try:
-            ArmModel.load(urdf)
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"WAVEGRASP_ARM_URDF: {exc}") from None
-    ports = {"--viewer-port": args.viewer_port} if args.viewer else {}
-    if args.foxglove:
-        ports["--foxglove-port"] = args.foxglove_port
-    if environ.get("WAVEGRASP_ROUTER_PORT"):
-        text = environ["WAVEGRASP_ROUTER_PORT"]
-        if not text.isdigit() or not 0 < int(text) < 65536:
-            raise ValueError(f"WAVEGRASP_ROUTER_PORT {text!r}: not a port number")
-        ports["WAVEGRASP_ROUTER_PORT"] = int(text)
-    for what, port in ports.items():
-        with socket.socket() as s:
-            try:
-                s.bind((environ.get("WAVEGRASP_ROUTER_BIND", "127.0.0.1"), port))
-            except OSError as exc:
-                raise ValueError(f"{what} {port}: the port is taken ({exc.strerror}): "
-                                 "choose another") from None
-
-
-def across_tether(services: dict[str, ComposeService], tether: Tether, port: int) -> None:
-    """Put the vehicle's services in the tether's namespace with a router of their own on
-    ``port`` there, which the topside router reaches across the tether, and which never
-    sends the camera's full clouds across it; the player waits for the edge stage."""
-    router = services["router"]
-    vehicle_router = replace(router, name="vehicle-router", environment={
-        **router.environment, "WAVEGRASP_NETNS": tether.name,
-        "ZENOH_LISTEN": f"tcp/127.0.0.1:{port},tcp/{tether.vehicle_ip}:{port}",
-        "WAVEGRASP_HOLD_KEYS": CAMERA_KEY, "WAVEGRASP_HOLD_INTERFACES": tether.vehicle_end})
-    router.environment["WAVEGRASP_ROUTER_CONNECT"] = f"tcp/{tether.vehicle_ip}:{port}"
-    router.depends_on = {**router.depends_on, "vehicle-router": "service_started"}
-    services["vehicle-router"] = vehicle_router
-    for name in VEHICLE:
-        if name in services:
-            services[name].environment.update({
-                "WAVEGRASP_NETNS": tether.name, "ZENOH_CONNECT": f"tcp/127.0.0.1:{port}"})
-    player = services.get("player")
-    if player is not None and "edge" in services:
-        player.depends_on = {**player.depends_on, "edge": "service_healthy"}
-        waits = player.environment.get("WAVEGRASP_WAIT_FOR", "")
-        player.environment["WAVEGRASP_WAIT_FOR"] = ",".join(filter(None, [waits, "edge"]))
 
 
 def execute(run: Run) -> str:

@@ -15,8 +15,11 @@ import os
 import subprocess
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+from wavegrasp.ops.compose import ComposeService
+from wavegrasp.ops.status import CAMERA_KEY
 
 #: The services that run on the vehicle: the camera (its stand-in, the player), the edge stage
 #: that cuts its clouds down to the tether, and the arm.
@@ -134,3 +137,27 @@ class Tether:
                 "down_mean_mbit_s": round((s[-1][2] - s[0][2]) * 8e-6 / span, 2),
                 "up_peak_mbit_s": round(max(u for u, _ in per_s), 2),
                 "down_peak_mbit_s": round(max(d for _, d in per_s), 2)}
+
+
+def across_tether(services: dict[str, ComposeService], tether: Tether, port: int) -> None:
+    """Put the vehicle's services in the tether's namespace with a router of their own on
+    ``port`` there, which the topside router reaches across the tether, and which never
+    sends the camera's full clouds across it; the player waits for the edge stage."""
+    router = services["router"]
+    vehicle_router = replace(router, name="vehicle-router", environment={
+        **router.environment, "WAVEGRASP_NETNS": tether.name,
+        "ZENOH_LISTEN": f"tcp/127.0.0.1:{port},tcp/{tether.vehicle_ip}:{port}",
+        "WAVEGRASP_HOLD_KEYS": CAMERA_KEY,
+        "WAVEGRASP_HOLD_INTERFACES": tether.vehicle_end})
+    router.environment["WAVEGRASP_ROUTER_CONNECT"] = f"tcp/{tether.vehicle_ip}:{port}"
+    router.depends_on = {**router.depends_on, "vehicle-router": "service_started"}
+    services["vehicle-router"] = vehicle_router
+    for name in VEHICLE:
+        if name in services:
+            services[name].environment.update({
+                "WAVEGRASP_NETNS": tether.name, "ZENOH_CONNECT": f"tcp/127.0.0.1:{port}"})
+    player = services.get("player")
+    if player is not None and "edge" in services:
+        player.depends_on = {**player.depends_on, "edge": "service_healthy"}
+        waits = player.environment.get("WAVEGRASP_WAIT_FOR", "")
+        player.environment["WAVEGRASP_WAIT_FOR"] = ",".join(filter(None, [waits, "edge"]))
