@@ -15,11 +15,10 @@ from wavegrasp.predictor import MODELS
 def check_choices(args: argparse.Namespace, environ: Mapping[str, str]) -> None:
     """Raise ValueError naming the first of the run's choices that cannot work: a predictor
     that does not exist, an arm description that does not load, a port taken; ImportError
-    for a system library that open3d or PyBullet cannot load."""
-    # open3d and PyBullet load system libraries: a missing one is named in one line (the
+    for a system library that open3d cannot load."""
+    # open3d loads system libraries (libusb...): a missing one is named in one line (the
     # command's handler, wavegrasp.cli) before any service starts and fails on it.
     importlib.import_module("open3d")
-    importlib.import_module("pybullet")
     if args.predictor and args.predictor not in MODELS:
         raise ValueError(f"--predictor {args.predictor}: no such predictor (there are "
                          f"{', '.join(MODELS)})")

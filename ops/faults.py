@@ -47,6 +47,7 @@ from wavegrasp.runtime.bus import CDR, JSON, Bus, Delivery
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.schemas import (
     ROS_KEYS,
+    ArmState,
     Clock,
     FrameAck,
     GateDecision,
@@ -118,6 +119,8 @@ class Watch:
     gos: list[float] = field(default_factory=list)  # monotonic times of go decisions
     approaches: list[float] = field(default_factory=list)  # of them, a plan's first
     outcomes: list[float] = field(default_factory=list)  # monotonic times of grasp outcomes
+    #: The plans the arm began to execute, in order (from its state's executing_plan_id).
+    executed: list[str] = field(default_factory=list)
     stats: dict[str, ServiceStats] = field(default_factory=dict)
     stats_at: dict[str, float] = field(default_factory=dict)  # monotonic, the latest's arrival
 
@@ -133,6 +136,11 @@ class Watch:
             self.gos.append(time.monotonic())
             if msg.reason != "go: update":
                 self.approaches.append(time.monotonic())
+
+    def on_arm_state(self, msg: ArmState, _d: Delivery) -> None:
+        plan = msg.executing_plan_id
+        if plan and (not self.executed or self.executed[-1] != plan):
+            self.executed.append(plan)
 
     def on_outcome(self, _msg: GraspOutcome, _d: Delivery) -> None:
         self.outcomes.append(time.monotonic())
@@ -174,6 +182,7 @@ class Injector:
         bus.subscribe("wavegrasp/*/ack", w.on_ack, FrameAck)
         bus.subscribe("wavegrasp/gate/decision", w.on_decision, GateDecision)
         bus.subscribe("wavegrasp/sim/outcome", w.on_outcome, GraspOutcome)
+        bus.subscribe("wavegrasp/sim/arm_state", w.on_arm_state, ArmState)
         bus.subscribe("wavegrasp/*/stats", w.on_stats, ServiceStats)
         return bus
 
@@ -246,18 +255,20 @@ class Injector:
         heard from again (its stats) after the link returned."""
         tether, w = self.run.tether, self.watch
         assert tether is not None
-        if when == "during an approach":  # the next plan approved
-            approaches = len(w.approaches)
-            while len(w.approaches) == approaches and not self.ended():
+        plan = ""
+        if when == "during an approach":  # the next plan the arm begins to execute
+            executed = len(w.executed)
+            while len(w.executed) == executed and not self.ended():
                 self.pump(0.05)
             self.pump(CUT_AFTER_GO_S)
+            plan = w.executed[-1] if len(w.executed) > executed else ""
         else:  # no attempt under way: each approach has its outcome
             while len(w.outcomes) < len(w.approaches) and not self.ended():
                 self.pump(0.05)
         if self.ended():
             return
         before = {k: w.counter("sim", k) for k in SIM_WATCH}
-        fault = Fault("tether cut", when, self.now_s())
+        fault = Fault("tether cut", when, self.now_s(), detail=f"plan {plan}" if plan else "")
         self.faults.append(fault)
         tether.cut(True)
         self.pump(CUT_S)

@@ -22,7 +22,7 @@ from wavegrasp.schemas import model_for_key
 from conftest import make_recording, wavegrasp_cmd
 
 LAYOUT = Path(__file__).parents[1] / "ops" / "foxglove" / "layout.json"
-SCENE = {"/tf", "/robot_description", "/wavegrasp/scene/markers"}
+SCENE = {"/tf", "/robot_description", "/wavegrasp/scene/markers", "/wavegrasp/scene/mesh"}
 
 
 class Client:
@@ -130,3 +130,22 @@ def test_foxglove_sees_the_scene_live_and_the_run_file_has_it(tmp_path: Path) ->
         assert m.hops_ms == dict(hop_times_ms(trace))
         assert {"perception", "predictor", "planner", "gate"} <= set(m.hops_ms)
         assert m.total_ms == (trace[-1].sent_ns - trace[0].recv_ns) / 1e6
+
+
+def test_the_layout_has_what_an_import_needs() -> None:
+    """Foxglove's (and Lichtblick's) import refuses a layout without ``playbackConfig``; every
+    panel the arrangement names is configured; an optional field (``float64[<=1]``) is
+    plotted by its element."""
+    layout = json.loads(LAYOUT.read_text())
+    assert {"configById", "layout", "playbackConfig", "globalVariables", "userNodes"} <= set(
+        layout)
+
+    def panels(node: object) -> list[str]:
+        if isinstance(node, str):
+            return [node]
+        assert isinstance(node, dict), node
+        return panels(node["first"]) + panels(node["second"])
+
+    assert sorted(panels(layout["layout"])) == sorted(layout["configById"])
+    paths = [p["value"] for c in layout["configById"].values() for p in c.get("paths", [])]
+    assert "/wavegrasp/gate/decision.mean_error_m[0]" in paths

@@ -69,8 +69,11 @@ def test_tether_cuts_stop_the_arm_and_the_run_recovers_to_a_grasp(tmp_path: Path
         assert 500 <= stopped_ms <= 600, cut
         assert cut["back_after_s"] < 10
     outcomes = json.loads((out / "summary.json").read_text())["outcomes"]
-    # The approach cut off ended aborted; a later one grasped.
-    assert outcomes[0]["aborted"] and "no heartbeat" in outcomes[0]["evidence"]["reason"]
+    # The approach cut off (the plan the arm was executing) ended aborted by the watchdog;
+    # a later one grasped.
+    plan = cuts["during an approach"]["detail"].removeprefix("plan ")
+    (cut_off,) = [o for o in outcomes if o["plan_id"] == plan]
+    assert cut_off["aborted"] and "no heartbeat" in cut_off["evidence"]["reason"], outcomes
     assert outcomes[-1]["success"], outcomes
     assert result.returncode == 0, result.stdout[-3000:]
 

@@ -44,6 +44,14 @@ def check_run(recording: Path, out: Path, result: subprocess.CompletedProcess) -
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "finished" and not summary["crashed"]
     assert summary["player"]["frames"] == 50
+    # One timeline, the recording's: what came before its clock started (stats, heartbeats)
+    # is logged at its first tick, not on the wall clock (a viewer's timeline spans the file).
+    with (out / "run.mcap").open("rb") as f:
+        stats = make_reader(f).get_summary().statistics
+    with (out / "run.mcap").open("rb") as f:
+        ticks = [m.log_time for _, _, m in make_reader(f).iter_messages(["/wavegrasp/clock"])]
+    assert stats.message_start_time == min(ticks), (stats.message_start_time, min(ticks))
+    assert stats.message_end_time - stats.message_start_time < 60 * 10**9
     # It ends with its table and where to look next (not a terminal: plain status lines).
     assert f"see it: rerun {out / 'run.rrd'}" in result.stdout
     assert "status | " in result.stdout

@@ -5,7 +5,8 @@ CDR keys, ours (``wavegrasp_msgs``) as well as the camera's, become ROS 2 channe
 ``/a/b`` for key ``a/b``, ``ros2msg`` schema), so a run is itself a recording the player can
 replay and ROS 2 tools read; JSON a tool publishes becomes a ``json`` channel with the model's
 JSON Schema. log_time is on the recording's clock (the CDR attachment's log time, else the
-latest ``wavegrasp/clock``), so the run lines up with its input. The file is flushed every
+latest ``wavegrasp/clock``), so the run lines up with its input; what comes before the
+clock's first tick is logged at that tick. The file is flushed every
 ``flush_period_s``: a killed recorder loses at most that much. After each camera frame is
 written the recorder acknowledges it on ``wavegrasp/recorder/ack`` (the player's lockstep).
 The recorder subscribes to ``record_keys`` (``WAVEGRASP_RECORD_KEYS``, comma-separated key
@@ -149,6 +150,10 @@ def free_run_path(out: Path) -> Path:
     return path
 
 
+#: The most messages held for the clock's first tick (a few seconds of start-up).
+MAX_EARLY = 10_000
+
+
 class Recorder(Service):
     subscribes_clock = False  # its own subscription brings the ticks: see _record_own
 
@@ -168,6 +173,9 @@ class Recorder(Service):
         self._typestore = ros2_typestore()
         self._last_flush = time.monotonic()
         self._wrote_metadata = False
+        #: Messages that came before the recording's clock started (its first tick):
+        #: (channel, payload, publish time, sequence), logged at the first tick's time.
+        self._early: list[tuple[int, bytes, int, int]] = []
         self.frames = 0
         self.written = 0
         self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
@@ -291,9 +299,8 @@ class Recorder(Service):
             msgdef = ros2_msgdef(msgtype)
         if write:
             channel = self._channel("/" + d.key, "cdr", msgtype, "ros2msg", lambda: msgdef)
-            self.writer.add_message(channel, log_time, d.payload, log_time,
-                                    sequence=(att.seq if att else 0) & 0xFFFFFFFF)
-            self.written += 1
+            self.write(channel, log_time, d.payload, log_time, (att.seq if att else 0),
+                       on_clock=att is not None and bool(att.log_time_ns))
         if d.key == self.points_key and att is not None:
             self.frames += 1
             self.counters["frames"] = self.frames
@@ -331,6 +338,7 @@ class Recorder(Service):
         header = getattr(msg, "header", None)
         if isinstance(msg, Clock):
             self.clock.on_clock(msg)
+            self.write_early(msg.header.stamp_ns)
         log_time = msg.header.stamp_ns if isinstance(msg, Clock) else self.clock.now_ns()
         publish_time = header.stamp_ns if header is not None and header.stamp_ns else log_time
         if d.encoding.startswith(CDR):
@@ -340,9 +348,26 @@ class Recorder(Service):
         else:
             channel = self._channel(d.key, "json", model.__name__, "jsonschema",
                                     lambda: schema_text(model.__name__))
-        self.writer.add_message(channel, log_time, d.payload, publish_time)
-        self.written += 1
+        self.write(channel, log_time, d.payload, publish_time, on_clock=isinstance(msg, Clock))
         return msg
+
+    def write(self, channel: int, log_time: int, payload: bytes, publish_time: int,
+              sequence: int = 0, on_clock: bool = True) -> None:
+        """Write one message; one whose log time is not on the recording's clock
+        (``on_clock``) while that clock has not started waits for its first tick, so that a
+        run's file stays on one timeline (a viewer's timeline spans the file)."""
+        if not on_clock and not self.clock.started and len(self._early) < MAX_EARLY:
+            self._early.append((channel, payload, publish_time, sequence))
+            return
+        self.writer.add_message(channel, log_time, payload, publish_time,
+                                sequence=sequence & 0xFFFFFFFF)
+        self.written += 1
+
+    def write_early(self, log_time: int) -> None:
+        """The messages that came before the clock's first tick, logged at ``log_time``."""
+        early, self._early = self._early, []
+        for channel, payload, publish_time, sequence in early:
+            self.write(channel, log_time, payload, publish_time, sequence)
 
     def _flush_if_due(self) -> None:
         if time.monotonic() - self._last_flush >= self.flush_period_s:
@@ -354,6 +379,7 @@ class Recorder(Service):
         self._flush_if_due()
 
     def on_stop(self) -> None:
+        self.write_early(time.time_ns())  # no clock ever came: a wall-clock run
         self.writer.add_metadata("wavegrasp.run", {
             "frames": str(self.frames), "messages": str(self.written),
             "bad": json.dumps(dict(self.bus.bad))})

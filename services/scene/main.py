@@ -6,8 +6,10 @@ From the bus it makes, in the recording's time:
   (origin at its volume centroid, z along its axis) from each observation;
 - ``robot_description`` (``std_msgs/msg/String``): the arm's URDF, again every
   ``description_period_s`` (ROS latches it; a viewer that joins late gets it);
-- ``wavegrasp/scene/markers`` (``visualization_msgs/msg/MarkerArray``): the object's mesh
-  and centroid, the prediction with its sigma at the end, the grasp pose and the approach
+- ``wavegrasp/scene/mesh`` (``visualization_msgs/msg/MarkerArray``): the object's mesh, in
+  ``object``;
+- ``wavegrasp/scene/markers`` (``visualization_msgs/msg/MarkerArray``): the object's
+  centroid, the prediction with its sigma at the end, the grasp pose and the approach
   path of the latest plan, and the gate's verdict (its error against ε) over the object;
 - ``wavegrasp/scene/latency`` (:class:`~wavegrasp.schemas.DecisionLatency`): each gate
   decision's milliseconds per hop, from its trace, for plots.
@@ -43,6 +45,7 @@ from wavegrasp.schemas import (
 from wavegrasp.schemas.mesh_codec import decode_mesh
 
 MARKERS_KEY = "wavegrasp/scene/markers"
+MESH_KEY = "wavegrasp/scene/mesh"
 LATENCY_KEY = "wavegrasp/scene/latency"
 TF_KEY = "tf"
 DESCRIPTION_KEY = "robot_description"
@@ -77,6 +80,7 @@ class SceneService(Service):
         self._described_at = 0.0
         self.centroid: np.ndarray | None = None
         self.latencies = 0  # DecisionLatency messages published
+        self.latest: dict[str, object] = {}  # per marker namespace, its latest marker
         b = self.bus
         b.subscribe(settings.joint_states_key, self.on_joint_state)
         b.subscribe("wavegrasp/perception/object", self.on_object, ObjectObservation)
@@ -86,7 +90,11 @@ class SceneService(Service):
         b.subscribe("wavegrasp/gate/decision", self.on_decision, GateDecision)
 
     def publish_markers(self, *markers: object) -> None:
-        self.bus.publish_cdr(MARKERS_KEY, mk.marker_array(list(markers)), mk.MARKER_ARRAY)
+        """Each array carries the latest marker of every namespace: a viewer that seeks
+        restores only a topic's latest message, and would show one kind of marker alone."""
+        self.latest.update({m.ns: m for m in markers})
+        self.bus.publish_cdr(MARKERS_KEY, mk.marker_array(list(self.latest.values())),
+                             mk.MARKER_ARRAY)
         self.counters["marker arrays"] += 1
 
     def link_frames(self, names: list[str], q: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
@@ -133,8 +141,10 @@ class SceneService(Service):
 
     def on_mesh(self, msg: ObjectMesh, _d: Delivery) -> None:
         vertices, triangles = decode_mesh(msg.model_dump())
-        self.publish_markers(mk.marker("mesh", mk.TRIANGLE_LIST, msg.header.stamp_ns, "object",
-                                       GREY, (1.0, 1.0, 1.0), path=vertices[triangles]))
+        # On a topic of its own: its triangles are too many to send again with every marker.
+        mesh = mk.marker("mesh", mk.TRIANGLE_LIST, msg.header.stamp_ns, "object", GREY,
+                         (1.0, 1.0, 1.0), path=vertices[triangles])
+        self.bus.publish_cdr(MESH_KEY, mk.marker_array([mesh]), mk.MARKER_ARRAY)
 
     def on_prediction(self, msg: MotionPrediction, _d: Delivery) -> None:
         if not msg.samples:
