@@ -350,3 +350,43 @@ def test_a_looped_recording_plays_on_as_one_stream(isolated_bus: Bus, recording:
     assert all(decode_pose(m.cdr)[2] == m.log_time_ns for m in truth)
     tf = [m for m in looped if m.topic == "/tf_static"]
     assert len({m.cdr for m in tf}) == len({m.cdr for m in once if m.topic == "/tf_static"})
+
+
+@pytest.mark.parametrize("isolated_bus", ["recorder"], indirect=True)
+def test_what_comes_before_the_clock_is_logged_at_its_first_tick(
+        isolated_bus: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One timeline: a service's stats that arrive before the replay's first tick are logged
+    at that tick; with no tick in time (a live run without ``clock: wall``) at their arrival,
+    not held in memory for ever."""
+    from wavegrasp.recorder import main as recorder_main
+
+    def stats(uptime_s: float) -> Delivery:
+        msg = ServiceStats(header=new_header("gate", 1, time.time_ns()), service="gate",
+                           uptime_s=uptime_s)
+        return Delivery("wavegrasp/gate/stats", msg.model_dump_json().encode(),
+                        f"{JSON};ServiceStats", None, 0, len(isolated_bus.subscriptions) - 1)
+
+    def log_times(rec: Recorder) -> list[int]:
+        rec.on_stop()
+        with rec.path.open("rb") as f:
+            return [m.log_time for _, _, m in make_reader(f).iter_messages(log_time_order=False)]
+
+    tick_ns = 1_700_000_000 * 10**9
+    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path / "a", rrd=False),
+                   bus=isolated_bus)
+    clock = Clock(header=Header(stamp_ns=tick_ns))
+    for d in (stats(1.0), stats(2.0), Delivery(
+            "wavegrasp/clock", clock.model_dump_json().encode(), f"{JSON};Clock", None, 0,
+            len(isolated_bus.subscriptions) - 1), stats(3.0)):
+        isolated_bus.dispatch(d)
+    times = log_times(rec)
+    assert len(times) == 4 and times[:3] == [tick_ns] * 3 and times[3] - tick_ns < 10**9
+    monkeypatch.setattr(recorder_main, "EARLY_WAIT_NS", 0)  # no tick comes in time
+    rec = Recorder(RecorderSettings(service="recorder", out=tmp_path / "b", rrd=False),
+                   bus=isolated_bus)
+    before = time.time_ns()
+    isolated_bus.dispatch(stats(1.0))
+    isolated_bus.dispatch(stats(2.0))
+    assert rec._early is None  # none held any more
+    times = log_times(rec)
+    assert len(times) == 2 and all(before <= t <= time.time_ns() for t in times)

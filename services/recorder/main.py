@@ -150,8 +150,11 @@ def free_run_path(out: Path) -> Path:
     return path
 
 
-#: The most messages held for the clock's first tick (a few seconds of start-up).
-MAX_EARLY = 10_000
+#: How long, and how many bytes, messages are held for the clock's first tick (a few
+#: seconds of start-up); past either the run has no recording clock (a live one without
+#: ``clock: wall``) and they are written at their arrival.
+EARLY_WAIT_NS = 5 * 10**9
+EARLY_BYTES = 64 * 2**20
 
 
 class Recorder(Service):
@@ -174,8 +177,10 @@ class Recorder(Service):
         self._last_flush = time.monotonic()
         self._wrote_metadata = False
         #: Messages that came before the recording's clock started (its first tick):
-        #: (channel, payload, publish time, sequence), logged at the first tick's time.
-        self._early: list[tuple[int, bytes, int, int]] = []
+        #: (channel, payload, publish time, sequence, arrival ns), logged at the first
+        #: tick's time; None once no tick came in time (they went at their arrival).
+        self._early: list[tuple[int, bytes, int, int, int]] | None = []
+        self._early_bytes = 0
         self.frames = 0
         self.written = 0
         self.excluded: list[zenoh.KeyExpr] = [zenoh.KeyExpr(e) for e in settings.record_exclude]
@@ -356,18 +361,26 @@ class Recorder(Service):
         """Write one message; one whose log time is not on the recording's clock
         (``on_clock``) while that clock has not started waits for its first tick, so that a
         run's file stays on one timeline (a viewer's timeline spans the file)."""
-        if not on_clock and not self.clock.started and len(self._early) < MAX_EARLY:
-            self._early.append((channel, payload, publish_time, sequence))
+        if not on_clock and not self.clock.started and self._early is not None:
+            now = time.time_ns()
+            self._early.append((channel, payload, publish_time, sequence, now))
+            self._early_bytes += len(payload)
+            if (now - self._early[0][4] > EARLY_WAIT_NS
+                    or self._early_bytes > EARLY_BYTES):
+                self.write_early(None)  # no recording clock: at their arrival from now on
             return
         self.writer.add_message(channel, log_time, payload, publish_time,
                                 sequence=sequence & 0xFFFFFFFF)
         self.written += 1
 
-    def write_early(self, log_time: int) -> None:
-        """The messages that came before the clock's first tick, logged at ``log_time``."""
-        early, self._early = self._early, []
-        for channel, payload, publish_time, sequence in early:
-            self.write(channel, log_time, payload, publish_time, sequence)
+    def write_early(self, log_time: int | None) -> None:
+        """The messages held for the clock's first tick, logged at ``log_time`` (None: each
+        at its arrival, and none held any more)."""
+        early, self._early = self._early or [], [] if log_time is not None else None
+        self._early_bytes = 0
+        for channel, payload, publish_time, sequence, arrived in early:
+            self.write(channel, arrived if log_time is None else log_time, payload,
+                       publish_time, sequence)
 
     def _flush_if_due(self) -> None:
         if time.monotonic() - self._last_flush >= self.flush_period_s:
@@ -379,7 +392,7 @@ class Recorder(Service):
         self._flush_if_due()
 
     def on_stop(self) -> None:
-        self.write_early(time.time_ns())  # no clock ever came: a wall-clock run
+        self.write_early(None)  # no clock ever came: at their arrival
         self.writer.add_metadata("wavegrasp.run", {
             "frames": str(self.frames), "messages": str(self.written),
             "bad": json.dumps(dict(self.bus.bad))})
