@@ -3,7 +3,8 @@
 ``MESSAGE_TYPES`` maps a schema name (sent as the zenoh encoding's schema) to its model;
 ``KEY_TYPES`` maps each fixed key to the model it carries; ``ROS_KEYS`` maps the keys that
 travel as CDR (ROS topics by the zenoh-bridge-ros2dds mapping: topic ``/a/b`` on key ``a/b``;
-and perception's object points) to their ROS 2 type.
+and perception's object points) to their ROS 2 type; ``SCENE_KEYS`` the same for the scene's
+keys (what Foxglove and rviz2 draw).
 """
 
 from __future__ import annotations
@@ -90,6 +91,19 @@ ROS_KEYS: dict[str, str] = {
 }
 
 
+# The scene's keys (services/scene), in the ROS 2 types Foxglove's 3D panel and rviz2 draw.
+TF_KEY = "tf"
+DESCRIPTION_KEY = "robot_description"
+MARKERS_KEY = "wavegrasp/scene/markers"
+MESH_KEY = "wavegrasp/scene/mesh"
+SCENE_KEYS: dict[str, str] = {
+    TF_KEY: "tf2_msgs/msg/TFMessage",
+    DESCRIPTION_KEY: "std_msgs/msg/String",
+    MARKERS_KEY: "visualization_msgs/msg/MarkerArray",
+    MESH_KEY: "visualization_msgs/msg/MarkerArray",
+}
+
+
 def ack_key(service: str) -> str:
     """Key on which ``service`` acknowledges finished camera frames (:class:`FrameAck`)."""
     return f"wavegrasp/{service}/ack"
@@ -121,6 +135,7 @@ __all__ = [
     "GraspOutcome", "ArmStandby", "GraspPlan", "Header", "Heartbeat", "HEARTBEAT_KEY", "Hop",
     "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
-    "PredictionSample", "Quaternion", "ROS_KEYS", "ServiceStats", "Vec3", "ack_key",
-    "health_key", "model_for_key", "stats_key",
+    "PredictionSample", "Quaternion", "ROS_KEYS", "SCENE_KEYS", "ServiceStats", "Vec3", "ack_key",
+    "health_key", "model_for_key", "stats_key", "DESCRIPTION_KEY", "MARKERS_KEY", "MESH_KEY",
+    "TF_KEY",
 ]

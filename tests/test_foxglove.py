@@ -9,6 +9,7 @@ import re
 import struct
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import websocket
@@ -43,10 +44,11 @@ class Client:
         self.topics: dict[int, str] = {}
         self.schemas: dict[str, str] = {}
         self.received: dict[str, int] = {}
+        self.status: list[str] = []  # the server's status messages (a refused subscription)
 
-    def read(self, seconds: float) -> None:
+    def read(self, seconds: float, done: Callable[[], bool] = lambda: False) -> None:
         deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not done():
             try:
                 opcode, data = self.ws.recv_data()
             except websocket.WebSocketTimeoutException:
@@ -61,6 +63,8 @@ class Client:
                         self.schemas[c["topic"]] = c["schemaName"]
                     self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                         {"id": c["id"], "channelId": c["id"]} for c in msg["channels"]]}))
+                elif msg["op"] == "status":
+                    self.status.append(msg["message"])
             elif opcode == websocket.ABNF.OPCODE_CLOSE:
                 return
             elif opcode == websocket.ABNF.OPCODE_BINARY and data[:1] == b"\x01":
@@ -88,22 +92,27 @@ def test_foxglove_sees_the_scene_live_and_the_run_file_has_it(tmp_path: Path) ->
     # long enough for the gate to decide (the latency per hop comes with each decision)
     recording = make_recording(tmp_path / "can.mcap", seconds=12.0, seed=3, wave=2,
                                object="can_empty")
-    port, out = free_port(), tmp_path / "run"
-    run = subprocess.Popen(wavegrasp_cmd("up", str(recording), "--foxglove", "--foxglove-port",
-                                         str(port), "--out", str(out)),
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        client = Client(port)
-        client.read(15.0)
-    finally:
-        output, _ = run.communicate(timeout=120)
-    assert run.returncode == 0, output[-3000:]
+    port, out, log = free_port(), tmp_path / "run", tmp_path / "up.log"
+    with log.open("w") as sink:
+        run = subprocess.Popen(wavegrasp_cmd("up", str(recording), "--foxglove",
+                                             "--foxglove-port", str(port), "--out", str(out)),
+                               stdout=sink, stderr=subprocess.STDOUT, text=True)
+        try:
+            client = Client(port)
+            client.read(120.0, done=lambda: run.poll() is not None)  # the whole run, live
+        finally:
+            run.wait(timeout=120)
+    assert run.returncode == 0, log.read_text()[-3000:]
+    assert not client.status, client.status
     advertised = set(client.topics.values())
     assert SCENE | {"/trisect/points", "/wavegrasp/gate/heartbeat"} <= advertised, advertised
     assert client.schemas["/wavegrasp/scene/markers"] == "visualization_msgs/msg/MarkerArray"
     for topic in ("/tf", "/wavegrasp/scene/markers", "/trisect/points",
                   "/wavegrasp/perception/object"):
         assert client.received.get(topic, 0) > 5, (topic, client.received)
+    # A channel's first message reaches a client connected before it: each plan and outcome.
+    for topic in ("/wavegrasp/planner/plan", "/wavegrasp/sim/outcome"):
+        assert client.received.get(topic, 0) >= 1, (topic, client.received)
     with (out / "run.mcap").open("rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None

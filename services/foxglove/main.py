@@ -3,11 +3,12 @@
 Subscribes to ``serve_keys`` (everything by default) and serves each CDR key as a Foxglove channel
 (topic ``/`` + key, ``cdr`` messages, the type's ``ros2msg`` schema, as run.mcap has it)
 over the Foxglove WebSocket protocol (foxglove-sdk) on ``foxglove_host``:``foxglove_port``
-(127.0.0.1:8765: open ``ws://localhost:8765`` in Foxglove). A channel appears with its
-key's first message; the camera's clouds, the perception's points, the scene's markers and
-``/tf``, the arm's ``joint_states`` and every message of ours are drawn or plotted by
-Foxglove's panels (``ops/foxglove/layout.json``). Messages go out with their log time (the
-recording's clock), so Foxglove's timeline follows the replay.
+(127.0.0.1:8765: open ``ws://localhost:8765`` in Foxglove). Every key of the contract that
+``serve_keys`` covers has its channel from the start (``known_channels``); any other key's
+appears with its first message. The camera's clouds, the perception's points, the scene's
+markers and ``/tf``, the arm's ``joint_states`` and every message of ours are drawn or
+plotted by Foxglove's panels (``ops/foxglove/layout.json``). Messages go out with their log
+time (the recording's clock), so Foxglove's timeline follows the replay.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ import logging
 import sys
 
 import foxglove
+import zenoh
 from pydantic import Field
 
 from wavegrasp.recording_io.typestore import ros2_msgdef
-from wavegrasp.runtime.bus import CDR, BadMessage, Bus, Delivery, cdr_meta
+from wavegrasp.runtime.bus import CDR, BadMessage, Bus, Delivery, cdr_meta, ros_msgtype
 from wavegrasp.runtime.service import Service, service_main
 from wavegrasp.runtime.settings import Settings
-from wavegrasp.schemas import ROS_KEYS
+from wavegrasp.schemas import KEY_TYPES, ROS_KEYS, SCENE_KEYS
 
 log = logging.getLogger("wavegrasp.foxglove")
 
@@ -44,14 +46,20 @@ class FoxgloveBridge(Service):
         self.server = foxglove.start_server(name="wavegrasp", host=settings.foxglove_host,
                                             port=settings.foxglove_port)
         self.channels: dict[str, foxglove.Channel] = {}
+        for key, msgtype in known_channels(settings.serve_keys).items():
+            self.channel(key, msgtype)
         for expr in settings.serve_keys:
             self.bus.subscribe(expr, self.on_message)
         log.info("serving the bus for Foxglove on ws://%s:%d", settings.foxglove_host,
                  self.server.port)
 
     def channel(self, key: str, msgtype: str) -> foxglove.Channel:
-        """The key's channel, made with its first message (its type's schema)."""
+        """The key's channel in ``msgtype``'s schema, made if new; BadMessage if the key's
+        channel has another type."""
         channel = self.channels.get(key)
+        if channel is not None and channel.schema_name() != msgtype:
+            raise BadMessage(f"{key}: a {msgtype} message on a channel of "
+                             f"{channel.schema_name()}")
         if channel is None:
             try:
                 definition = ros2_msgdef(msgtype)
@@ -75,6 +83,22 @@ class FoxgloveBridge(Service):
 
     def on_stop(self) -> None:
         self.server.stop()
+
+
+def known_channels(serve_keys: list[str]) -> dict[str, str]:
+    """The contract's keys (ours, the ROS ones, the scene's) that ``serve_keys`` covers, each
+    with its ROS 2 type.
+
+    Made before any client connects because foxglove-sdk (0.x) loses a channel made while a
+    client is connected when the client subscribes quickly: the server sends the
+    advertisement before it adds the channel to the client's table, and refuses the
+    subscription that comes in between; and the message a channel is made with never reaches
+    a client already connected, so single messages (a plan, an outcome) were missed live.
+    """
+    exprs = [zenoh.KeyExpr(e) for e in serve_keys]
+    typed = {**{k: ros_msgtype(m.__name__) for k, m in KEY_TYPES.items()}, **ROS_KEYS,
+             **SCENE_KEYS}
+    return {k: t for k, t in typed.items() if any(e.intersects(zenoh.KeyExpr(k)) for e in exprs)}
 
 
 def main(argv: list[str] | None = None) -> int:

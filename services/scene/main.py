@@ -34,6 +34,10 @@ from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import hop_times_ms, new_header
 from wavegrasp.scene import markers as mk
 from wavegrasp.schemas import (
+    DESCRIPTION_KEY,
+    MARKERS_KEY,
+    MESH_KEY,
+    TF_KEY,
     DecisionLatency,
     GateDecision,
     GraspPlan,
@@ -44,11 +48,7 @@ from wavegrasp.schemas import (
 )
 from wavegrasp.schemas.mesh_codec import decode_mesh
 
-MARKERS_KEY = "wavegrasp/scene/markers"
-MESH_KEY = "wavegrasp/scene/mesh"
 LATENCY_KEY = "wavegrasp/scene/latency"
-TF_KEY = "tf"
-DESCRIPTION_KEY = "robot_description"
 GREEN, RED, BLUE, ORANGE, GREY = ((0.2, 0.8, 0.3, 1.0), (0.9, 0.2, 0.2, 1.0),
                                   (0.2, 0.5, 1.0, 0.8), (1.0, 0.6, 0.1, 1.0),
                                   (0.7, 0.7, 0.7, 0.6))
