@@ -20,6 +20,8 @@ Ctrl-C cancels the runs under way (each stops its services) and starts no other.
 from __future__ import annotations
 
 import os
+import sys
+import time
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -28,6 +30,8 @@ from tqdm import tqdm
 
 #: How long the runs cancelled by Ctrl-C are given to stop their services.
 STOP_WAIT_S = 30.0
+#: Connection attempts when the head's client server fails to start our session's server.
+CONNECT_ATTEMPTS = 3
 
 
 class ClusterError(Exception):
@@ -43,6 +47,24 @@ def check_address(address: str) -> str:
     return address
 
 
+def connect(ray: Any, address: str) -> None:
+    """``ray.init`` on the client ``address``, again (up to :data:`CONNECT_ATTEMPTS`) when the
+    head says the server it starts for each client failed to start: once in a CI run of the
+    test suite, the cause not known (the head's ``ray_client_server_*.err`` says it); a
+    :class:`ClusterError` when the cluster cannot be reached."""
+    for attempt in range(1, CONNECT_ATTEMPTS + 1):
+        try:
+            ray.init(address=address, logging_level="WARNING", log_to_driver=False)
+            return
+        except ConnectionError as exc:
+            if "Initialization failure from server" not in str(exc) or (
+                    attempt == CONNECT_ATTEMPTS):
+                raise ClusterError(f"--cluster {address}: {exc}") from None
+            print(f"--cluster {address}: the head could not start a client server (attempt "
+                  f"{attempt} of {CONNECT_ATTEMPTS}), trying again", file=sys.stderr)
+            time.sleep(2.0 * attempt)
+
+
 def run_on_cluster(address: str, run: Callable[..., Any], jobs: Sequence[tuple],
                    results: list, stop: Any, interrupted: type[Exception]) -> None:
     """``run(*job)`` for every job as a Ray task of one CPU on the cluster at ``address``,
@@ -56,11 +78,7 @@ def run_on_cluster(address: str, run: Callable[..., Any], jobs: Sequence[tuple],
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves the machine
     # Ray warns at length before it raises; the error's one line says it.
     warnings.filterwarnings("ignore", message="Ray Client connection timed out")
-    try:
-        ray.init(address=check_address(address), logging_level="WARNING",
-                 log_to_driver=False)
-    except ConnectionError as exc:
-        raise ClusterError(f"--cluster {address}: {exc}") from None
+    connect(ray, check_address(address))
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(run)
         pending = [task.remote(*job) for job in jobs]

@@ -29,6 +29,13 @@ def without_timings(report: dict) -> dict:
     return report
 
 
+def client_server_logs() -> str:
+    """The tails of the head's client-server logs, where Ray says why a client's server did
+    not start."""
+    logs = sorted(Path("/tmp/ray/session_latest/logs").glob("ray_client_server*"))
+    return "".join(f"\n--- {p.name}\n{p.read_text(errors='replace')[-1500:]}" for p in logs)
+
+
 def test_a_ray_cluster_runs_the_experiment_as_this_machine_does(tmp_path: Path) -> None:
     ray = str(Path(sys.executable).with_name("ray"))
     client_port = free_port()
@@ -43,7 +50,7 @@ def test_a_ray_cluster_runs_the_experiment_as_this_machine_does(tmp_path: Path) 
         remote = subprocess.run([*EVAL, "--out", str(tmp_path / "cluster"), "--cluster",
                                  f"ray://127.0.0.1:{client_port}"], env=ENV,
                                 capture_output=True, text=True, timeout=600)
-        assert remote.returncode == 0, remote.stderr[-2000:]
+        assert remote.returncode == 0, remote.stderr[-2000:] + client_server_logs()
     finally:
         subprocess.run([ray, "stop", "--force"], env=ENV, capture_output=True)
     here, there = (json.loads((tmp_path / d / "report.json").read_text())
