@@ -89,7 +89,7 @@ def known_channels(serve_keys: list[str]) -> dict[str, str]:
     """The contract's keys (ours, the ROS ones, the scene's) that ``serve_keys`` covers, each
     with its ROS 2 type.
 
-    Made before any client connects because foxglove-sdk (0.x) loses a channel made while a
+    Made before any client connects because foxglove-sdk (0.30) loses a channel made while a
     client is connected when the client subscribes quickly: the server sends the
     advertisement before it adds the channel to the client's table, and refuses the
     subscription that comes in between; and the message a channel is made with never reaches
