@@ -13,10 +13,10 @@ generated once into the cache) and, while it runs:
 3. **bad files**: the player on random bytes, a text file and an MCAP header with nothing
    after it; survived when it exits with one clear line naming the file and no traceback.
 4. with ``--tether MBIT`` (``wavegrasp up --tether``; then no kills unless ``--kill`` names
-   some): **tether cuts** of 2 s, 0.3 s after the first approach is approved and then while
-   the arm is idle; survived when the arm's side stopped within its watchdog time (the sim's
-   own count of the time since the last heartbeat), and every service was heard from again
-   after the link returned; the run must end with a grasp.
+   some): **tether cuts** of 2 s, 0.3 s after the arm begins to execute an approved plan and
+   then while the arm is idle; survived when the arm's side stopped within its watchdog time
+   (the sim's own count of the time since the last heartbeat), and every service was heard
+   from again after the link returned; the run must end with a grasp.
 
 Then it checks the gate approved nothing while an upstream service was down, prints a table
 and writes ``OUT/faults.json`` beside the run's ``summary.json``. Exit code 0 when everything
@@ -68,9 +68,9 @@ KILL_ORDER = ["perception", "predictor", "planner", "gate", "sim", "recorder", "
 BACK_WITHIN_S = 5.0
 WAIT_BACK_S = 15.0  # the longest a killed service is waited for before the next kill
 FRAMES_KEY = "trisect/points"
-#: A tether cut: how long, and how long after a go it comes during an approach.
+#: A tether cut: how long, and how long after the arm begins a plan it comes in an approach.
 CUT_S = 2.0
-CUT_AFTER_GO_S = 0.3
+CUT_AFTER_START_S = 0.3
 #: The sim's watchdog time (SimSettings.watchdog_s, unless WAVEGRASP_WATCHDOG_S says).
 WATCHDOG_S = float(os.environ.get("WAVEGRASP_WATCHDOG_S", "0.5"))
 STOPS = "watchdog: stopped, no heartbeat"
@@ -249,10 +249,10 @@ class Injector:
         self.pump(1.0)
 
     def cut_tether(self, when: str) -> None:
-        """Cut the tether for ``CUT_S`` (during an approach: ``CUT_AFTER_GO_S`` after the
-        next go, if one comes while the run lasts) and judge: the arm's side stopped within
-        its watchdog time, it took no path while cut off or stale, and every service was
-        heard from again (its stats) after the link returned."""
+        """Cut the tether for ``CUT_S`` (during an approach: ``CUT_AFTER_START_S`` after the
+        arm begins to execute the next plan, if it does while the run lasts) and judge: the
+        arm's side stopped within its watchdog time, it took no path while cut off or stale,
+        and every service was heard from again (its stats) after the link returned."""
         tether, w = self.run.tether, self.watch
         assert tether is not None
         plan = ""
@@ -260,7 +260,7 @@ class Injector:
             executed = len(w.executed)
             while len(w.executed) == executed and not self.ended():
                 self.pump(0.05)
-            self.pump(CUT_AFTER_GO_S)
+            self.pump(CUT_AFTER_START_S)
             plan = w.executed[-1] if len(w.executed) > executed else ""
         else:  # no attempt under way: each approach has its outcome
             while len(w.outcomes) < len(w.approaches) and not self.ended():
