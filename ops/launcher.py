@@ -228,8 +228,8 @@ class Launcher:
         for name, due in list(self._due.items()):
             if now >= due:
                 del self._due[name]
-                self.start(name)
                 self.restarts[name][-1].restarted_s = round(self.now_s(), 3)
+                self.start(name)
         self.note_back()
         return True
 
@@ -242,7 +242,8 @@ class Launcher:
             last = history[-1] if history else None
             if not (last and last.restarted_s is not None and last.back_s is None):
                 continue
-            # A token that appeared after the restart: the dead process's may linger a moment.
+            # A process's own token that appeared after the restart: the dead one's service
+            # token may linger a moment, and hides the new one's while it does.
             since = self.bus.alive_since.get(name, -1.0) - self._t0
             if name in alive and since >= last.restarted_s:
                 last.back_s = round(since, 3)

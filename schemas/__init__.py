@@ -119,6 +119,13 @@ def health_key(service: str) -> str:
     return f"wavegrasp/health/{service}"
 
 
+def instance_key(service: str, instance: str) -> str:
+    """Liveliness token key held by one process of ``service`` (``instance``: its session's
+    id) beside :func:`health_key`: a router passes on one token per key, so a restarted
+    service's own token shows while its dead predecessor's still lingers."""
+    return f"{health_key(service)}/{instance}"
+
+
 def model_for_key(key: str) -> type[BaseModel] | None:
     """The model a ``wavegrasp/...`` key carries, or None if the key is not in the contract."""
     if key in KEY_TYPES:
@@ -136,6 +143,6 @@ __all__ = [
     "JointSample", "KEY_TYPES",
     "MESSAGE_TYPES", "MotionPrediction", "ObjectMesh", "ObjectObservation", "PlayerStatus", "Pose",
     "PredictionSample", "Quaternion", "ROS_KEYS", "SCENE_KEYS", "ServiceStats", "Vec3", "ack_key",
-    "health_key", "model_for_key", "stats_key", "DESCRIPTION_KEY", "MARKERS_KEY", "MESH_KEY",
-    "TF_KEY",
+    "health_key", "instance_key", "model_for_key", "stats_key", "DESCRIPTION_KEY", "MARKERS_KEY",
+    "MESH_KEY", "TF_KEY",
 ]

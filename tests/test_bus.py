@@ -130,6 +130,33 @@ def test_liveliness_appears_and_disappears_on_kill(router: Router) -> None:
         stop(proc)
 
 
+def test_a_restart_shows_while_the_dead_process_token_lingers(router: Router) -> None:
+    """A router passes on one token per key: a service's successor that declares its token
+    before the router has dropped its predecessor's shows no new service token; its own
+    process token does, and that is when it counts as back."""
+    watcher = router.bus()
+    watcher.watch_alive()
+    old = router.bus("victim")
+    new = None
+    try:
+        old.declare_alive()
+        assert wait_until(lambda: "victim" in watcher.alive_now(), timeout=10)
+        first = watcher.alive_since["victim"]
+        restarted = time.monotonic()
+        new = router.bus("victim")
+        new.declare_alive()  # while the old process's token still stands
+        assert wait_until(lambda: watcher.alive_since["victim"] >= restarted, timeout=10), \
+            "the second process of a service was never seen"
+        assert first < restarted
+        old.close()
+        time.sleep(0.5)
+        assert "victim" in watcher.alive_now(), "the successor's service token still stands"
+    finally:
+        for bus in (new, old, watcher):
+            if bus is not None:
+                bus.close()
+
+
 def test_attachment_round_trip_and_plain_rmw_layout() -> None:
     att = CdrAttachment(seq=7, source_ns=10**18, gid=bytes(range(16)), log_time_ns=5)
     assert CdrAttachment.decode(att.encode()) == att

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ValidationError
 
 from wavegrasp.runtime.settings import Settings
 from wavegrasp.runtime.trace import CdrAttachment, publisher_gid, stamp_sent
-from wavegrasp.schemas import MESSAGE_TYPES, health_key
+from wavegrasp.schemas import MESSAGE_TYPES, health_key, instance_key
 from wavegrasp.schemas.ros import from_cdr, to_cdr
 from wavegrasp.schemas.ros import msgtype as ros_msgtype
 
@@ -223,7 +223,7 @@ class Bus:
         self._keep: list[Any] = []  # subscribers and tokens live as long as the bus
         self._lock = threading.Lock()
         self.alive: set[str] = set()  # kept up to date once watch_alive() is called
-        self.alive_since: dict[str, float] = {}  # monotonic time each token last appeared
+        self.alive_since: dict[str, float] = {}  # monotonic time a process of each last appeared
 
     # -- publishing ---------------------------------------------------------------------------
     def mark_urgent(self, *keys: str) -> None:
@@ -373,8 +373,12 @@ class Bus:
 
     # -- health -------------------------------------------------------------------------------
     def declare_alive(self) -> None:
-        """Hold the liveliness token ``wavegrasp/health/<service>`` until the bus closes."""
-        self._keep.append(self.session.liveliness().declare_token(health_key(self.service)))
+        """Hold the liveliness tokens ``wavegrasp/health/<service>`` and
+        ``wavegrasp/health/<service>/<session id>`` until the bus closes."""
+        liveliness = self.session.liveliness()
+        self._keep.append(liveliness.declare_token(health_key(self.service)))
+        self._keep.append(liveliness.declare_token(
+            instance_key(self.service, str(self.session.info.zid()))))
 
     def reaches_network(self) -> bool:
         """Whether the session is connected: a client or peer to a router, a router always."""
@@ -399,10 +403,18 @@ class Bus:
                     self.alive.discard(name)
                 else:
                     self.alive.add(name)
+
+        def on_instance(sample: zenoh.Sample) -> None:
+            # The service's own token shows no new process while a dead one's lingers.
+            name = str(sample.key_expr).rsplit("/", 2)[-2]
+            if sample.kind == zenoh.SampleKind.PUT:
+                with self._lock:
                     self.alive_since[name] = time.monotonic()
 
-        self._keep.append(self.session.liveliness().declare_subscriber(
-            health_key("*"), on_token, history=True))
+        liveliness = self.session.liveliness()
+        self._keep.append(liveliness.declare_subscriber(health_key("*"), on_token, history=True))
+        self._keep.append(liveliness.declare_subscriber(
+            instance_key("*", "*"), on_instance, history=True))
 
     def alive_now(self) -> set[str]:
         """A copy of the services alive, as :meth:`watch_alive` sees them."""
