@@ -222,7 +222,7 @@ class Launcher:
             delay = self._delay.get(name, RESTART_DELAY_S)
             self._delay[name] = min(2 * delay, RESTART_DELAY_MAX_S)
             self._due[name] = now + delay
-            history.append(Restart(code, round(self.now_s(), 3)))
+            history.append(Restart(code, round(self.died_s(name), 3)))
             self.log(f"{name} exited with code {code}: restarting it in {delay:.1f} s "
                      f"(restart {len(history)})")
         for name, due in list(self._due.items()):
@@ -232,6 +232,16 @@ class Launcher:
                 self.start(name)
         self.note_back()
         return True
+
+    def died_s(self, name: str) -> float:
+        """When ``name``'s failed process died, seconds since the run started: when its own
+        liveliness token went (the router sees a killed process's link close at once), not
+        when this loop, busy with the bus, noticed the exit; now if no token of it went."""
+        now = self.now_s()
+        gone = self.bus.gone_since.get(name) if self.bus is not None else None
+        if gone is None or gone < self._up_since[name]:
+            return now
+        return min(now, gone - self._t0)
 
     def note_back(self) -> None:
         """Stamp each restarted service's return: its liveliness token is up again."""

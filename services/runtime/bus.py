@@ -224,6 +224,7 @@ class Bus:
         self._lock = threading.Lock()
         self.alive: set[str] = set()  # kept up to date once watch_alive() is called
         self.alive_since: dict[str, float] = {}  # monotonic time a process of each last appeared
+        self.gone_since: dict[str, float] = {}  # monotonic time a process of each last went
 
     # -- publishing ---------------------------------------------------------------------------
     def mark_urgent(self, *keys: str) -> None:
@@ -407,9 +408,9 @@ class Bus:
         def on_instance(sample: zenoh.Sample) -> None:
             # The service's own token shows no new process while a dead one's lingers.
             name = str(sample.key_expr).rsplit("/", 2)[-2]
-            if sample.kind == zenoh.SampleKind.PUT:
-                with self._lock:
-                    self.alive_since[name] = time.monotonic()
+            since = self.alive_since if sample.kind == zenoh.SampleKind.PUT else self.gone_since
+            with self._lock:
+                since[name] = time.monotonic()
 
         liveliness = self.session.liveliness()
         self._keep.append(liveliness.declare_subscriber(health_key("*"), on_token, history=True))
